@@ -1,0 +1,58 @@
+#!/usr/bin/env python3
+"""Set up a local virtualenv and run the project's two jobs.
+
+    python3 dev.py demo     the main job: the demo against the bundled simulators
+    python3 dev.py test     the whole test suite (ruff, then pytest)
+
+Only a Python >= 3.11 is needed. The first run creates ``.venv`` beside this file and installs the
+package with its test extras; later runs reinstall only when ``pyproject.toml`` changes. Extra
+arguments are passed on (``python3 dev.py test -k profile``, ``python3 dev.py demo --help``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent
+VENV = ROOT / ".venv"
+BIN = VENV / ("Scripts" if os.name == "nt" else "bin")
+PY = BIN / ("python.exe" if os.name == "nt" else "python")
+STAMP = VENV / ".cncgw-installed"
+
+
+def _ensure_venv() -> None:
+    if sys.version_info < (3, 11):
+        sys.exit(f"dev.py: Python >= 3.11 is needed, this is {sys.version.split()[0]}")
+    want = hashlib.sha256((ROOT / "pyproject.toml").read_bytes()).hexdigest()
+    if PY.exists() and STAMP.exists() and STAMP.read_text().strip() == want:
+        return
+    if not PY.exists():
+        print(f"dev.py: creating {VENV}", flush=True)
+        venv.EnvBuilder(with_pip=True).create(VENV)
+    print("dev.py: installing cncgw and its test tools into .venv", flush=True)
+    subprocess.run([str(PY), "-m", "pip", "install", "--quiet", "--upgrade", "pip"], check=True)
+    subprocess.run([str(PY), "-m", "pip", "install", "--quiet", "-e", f"{ROOT}[test]"], check=True)
+    STAMP.write_text(want)
+
+
+def main(argv: list[str]) -> int:
+    if not argv or argv[0] not in {"demo", "test"}:
+        print(__doc__.strip())
+        return 2
+    job, rest = argv[0], argv[1:]
+    _ensure_venv()
+    os.chdir(ROOT)
+    if job == "demo":
+        return subprocess.call([str(BIN / "cncgw"), "demo", *rest])
+    lint = subprocess.call([str(PY), "-m", "ruff", "check", "gateway", "drivers", "simulators", "tests", "bench"])
+    tests = subprocess.call([str(PY), "-m", "pytest", *rest])
+    return lint or tests
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

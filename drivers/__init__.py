@@ -1,0 +1,1 @@
+"""Device drivers: one module per protocol family behind one small interface (see ``registry``)."""

@@ -1,0 +1,62 @@
+"""``cncgw``: the command line.
+
+Each command lives in its own module exposing ``add_parser(subparsers)``; the parser it adds carries a
+``run(args) -> int`` as its default ``func``. User mistakes (a :class:`~gateway.errors.GatewayError`)
+become one line per problem on stderr and a non-zero exit status, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+from gateway import __version__
+from gateway.errors import GatewayError
+
+#: command modules, in the order ``cncgw --help`` lists them
+COMMAND_MODULES = (
+    "gateway.commands.profile",
+    "simulators.cli",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``cncgw`` parser with every command module's sub-parser."""
+    parser = argparse.ArgumentParser(
+        prog="cncgw",
+        description="Estimate and compensate CNC machine-tool thermal deformation from CNC signals.",
+    )
+    parser.add_argument("--version", action="version", version=f"cncgw {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).add_parser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``cncgw`` with ``argv``; return the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    try:
+        return int(args.func(args) or 0)
+    except GatewayError as exc:
+        for line in str(exc).splitlines() or [type(exc).__name__]:
+            print(f"cncgw: error: {line}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("cncgw: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 141
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

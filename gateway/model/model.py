@@ -1,0 +1,416 @@
+"""The thermal model: a matrix of paths (axis x factor), each a small parametric transfer function.
+
+The model is data. It is saved as TOML next to the profile and round-trips exactly (floats are written
+with ``repr``). Inputs are deviations of the factors from the reference state (the machine at rest,
+powered long enough to be in thermal equilibrium): ``reference`` holds those factor levels, e.g. the Z
+motor's holding current squared on a vertical machine.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+import tomli_w
+
+from gateway.errors import ModelError
+from gateway.model.discrete import Section
+from gateway.model.terms import TERM_KINDS, FirstOrder, SecondOrder, Term
+from gateway.tomlcheck import Table, TomlDoc
+
+FORMAT = 1
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class PathTF:
+    """G_ij(s): the sum of ``terms``, behind a dead time of ``delay_s``. No terms is a zero path."""
+
+    axis: str
+    factor: str
+    terms: tuple[Term, ...] = ()
+    delay_s: float = 0.0
+    #: standard deviations of the identified parameters, keyed "term0.gain", "term0.tau_s", ...
+    sd: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.delay_s) and self.delay_s >= 0):
+            raise ValueError(f"path {self.axis}/{self.factor}: delay_s must be finite and >= 0. "
+                             f"Got {self.delay_s!r}")
+
+    @property
+    def gain(self) -> float:
+        """Static gain in um per factor unit (the sum of the terms' gains)."""
+        return float(sum(t.gain for t in self.terms))
+
+    @property
+    def K(self) -> float:
+        """The paper's K = 1/gain (inf for a zero path)."""
+        g = self.gain
+        return math.inf if g == 0 else 1.0 / g
+
+    @property
+    def kind(self) -> str:
+        if not self.terms or all(t.gain == 0 for t in self.terms):
+            return "zero"
+        kinds = [t.kind for t in self.terms]
+        if len(kinds) == 1:
+            return kinds[0]
+        if all(k == "first_order" for k in kinds):
+            return "two_modes" if len(kinds) == 2 else f"{len(kinds)}_modes"
+        return "+".join(kinds)
+
+    @property
+    def n_params(self) -> int:
+        per = {"first_order": 2, "second_order": 3}
+        return sum(per[t.kind] for t in self.terms) + (1 if self.delay_s else 0)
+
+    def sections(self, dt_s: float) -> list[tuple[float, Section]]:
+        """(gain, unit-gain section) for every term, discretised at ``dt_s``."""
+        out = []
+        for t in self.terms:
+            A, B, C = t.unit_state_space()
+            out.append((t.gain, Section.from_state_space(A, B, C, dt_s, self.delay_s)))
+        return out
+
+    def describe(self) -> str:
+        if self.kind == "zero":
+            return "0"
+        body = " + ".join(t.describe() for t in self.terms)
+        return body + (f", delay {self.delay_s / 60:.3g} min" if self.delay_s else "")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ThermalModel:
+    """lambda_i = sum_j G_ij(s) (u_j - reference_j), for axes i and factors j."""
+
+    axes: tuple[str, ...]
+    factors: tuple[str, ...]
+    units: Mapping[str, str]
+    reference: Mapping[str, float]
+    paths: Mapping[tuple[str, str], PathTF]
+    machine: str = ""
+    #: provenance and fit figures written by identification; informational, kept on round trip
+    info: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if len(set(self.axes)) != len(self.axes) or len(set(self.factors)) != len(self.factors):
+            raise ValueError("axes and factors must be unique")
+        full: dict[tuple[str, str], PathTF] = {}
+        for a in self.axes:
+            for f in self.factors:
+                p = self.paths.get((a, f))
+                full[(a, f)] = p if p is not None else PathTF(axis=a, factor=f)
+        extra = set(self.paths) - set(full)
+        if extra:
+            raise ValueError(f"paths for unknown axis/factor: {sorted(extra)}")
+        object.__setattr__(self, "paths", MappingProxyType(full))
+        object.__setattr__(self, "units", MappingProxyType({f: self.units.get(f, "") for f in self.factors}))
+        object.__setattr__(self, "reference",
+                           MappingProxyType({f: float(self.reference.get(f, 0.0)) for f in self.factors}))
+        object.__setattr__(self, "info", MappingProxyType(dict(self.info)))
+
+    def path(self, axis: str, factor: str) -> PathTF:
+        return self.paths[(axis, factor)]
+
+    def reference_vector(self) -> np.ndarray:
+        return np.array([self.reference[f] for f in self.factors])
+
+    def gain_matrix(self) -> np.ndarray:
+        """Static gains (um per factor unit), shape (axes, factors)."""
+        return np.array([[self.paths[(a, f)].gain for f in self.factors] for a in self.axes])
+
+    def with_paths(self, paths: Iterable[PathTF], **changes: Any) -> ThermalModel:
+        new = dict(self.paths)
+        for p in paths:
+            new[(p.axis, p.factor)] = p
+        return replace(self, paths=new, **changes)
+
+    def discretize(self, dt_s: float) -> DiscreteModel:
+        return DiscreteModel(self, dt_s)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, ThermalModel):
+            return NotImplemented
+        return (self.axes == other.axes and self.factors == other.factors
+                and dict(self.units) == dict(other.units) and dict(self.reference) == dict(other.reference)
+                and {k: _path_key(v) for k, v in self.paths.items()}
+                == {k: _path_key(v) for k, v in other.paths.items()}
+                and self.machine == other.machine and _plain(self.info) == _plain(other.info))
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+def _path_key(p: PathTF) -> tuple[Any, ...]:
+    return (p.axis, p.factor, p.terms, p.delay_s, dict(p.sd))
+
+
+def _plain(x: Any) -> Any:
+    if isinstance(x, Mapping):
+        return {k: _plain(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_plain(v) for v in x]
+    return x
+
+
+class DiscreteModel:
+    """A model discretised at one window length: batch replay and live estimators come from here."""
+
+    def __init__(self, model: ThermalModel, dt_s: float) -> None:
+        self.model = model
+        self.dt_s = float(dt_s)
+        # per axis: (factor index, gain, section)
+        self.sections: list[list[tuple[int, float, Section]]] = []
+        for a in model.axes:
+            row = []
+            for j, f in enumerate(model.factors):
+                for gain, sec in model.path(a, f).sections(self.dt_s):
+                    if gain != 0.0:
+                        row.append((j, gain, sec))
+            self.sections.append(row)
+        self.max_delay = max((s.m + 1 for row in self.sections for _, _, s in row), default=1)
+
+    def simulate(self, du: np.ndarray) -> np.ndarray:
+        """Displacements (axes, N) for factor deviations ``du`` (factors, N), from the reference state."""
+        du = np.asarray(du, dtype=float)
+        if du.ndim != 2 or du.shape[0] != len(self.model.factors):
+            raise ValueError(f"du: wrong shape {du.shape}, expected ({len(self.model.factors)}, N)")
+        if not np.all(np.isfinite(du)):
+            raise ValueError("du: inputs must be finite (fill gaps by a stated policy first)")
+        y = np.zeros((len(self.model.axes), du.shape[1]))
+        for i, row in enumerate(self.sections):
+            for j, gain, sec in row:
+                y[i] += gain * sec.filter(du[j])
+        return y
+
+    def contributions(self, du: np.ndarray) -> np.ndarray:
+        """Per-path displacements, shape (axes, factors, N): what each factor adds to each axis."""
+        du = np.asarray(du, dtype=float)
+        out = np.zeros((len(self.model.axes), len(self.model.factors), du.shape[1]))
+        for i, row in enumerate(self.sections):
+            for j, gain, sec in row:
+                out[i, j] += gain * sec.filter(du[j])
+        return out
+
+    def live(self) -> LiveEstimator:
+        return LiveEstimator(self)
+
+
+class LiveEstimator:
+    """Step-by-step estimator: one window in, one displacement per axis out; constant work per step.
+
+    Its state is a pure function of the input history (:meth:`from_history` rebuilds it), so after a
+    restart it is recomputed from the durable records instead of being persisted.
+    """
+
+    def __init__(self, dm: DiscreteModel) -> None:
+        self.dm = dm
+        self._flat = [(i, j, gain, sec) for i, row in enumerate(dm.sections) for j, gain, sec in row]
+        self._x = [np.zeros(sec.order) for _, _, _, sec in self._flat]
+        n_f = len(dm.model.factors)
+        self._hist = np.zeros((dm.max_delay + 1, n_f))  # row 0 = current input, row d = d steps ago
+        self.steps = 0
+
+    def step(self, du: Sequence[float] | np.ndarray) -> np.ndarray:
+        """Advance one window with factor deviations ``du``; return the displacement per axis (um)."""
+        du = np.asarray(du, dtype=float)
+        if du.shape != (self._hist.shape[1],) or not np.all(np.isfinite(du)):
+            raise ValueError(f"du: expected {self._hist.shape[1]} finite factor deviations, got {du!r}")
+        self._hist = np.roll(self._hist, 1, axis=0)
+        self._hist[0] = du
+        y = np.zeros(len(self.dm.model.axes))
+        for k, (i, j, gain, sec) in enumerate(self._flat):
+            x = sec.Ad @ self._x[k] + sec.B0 * self._hist[sec.m, j] + sec.B1 * self._hist[sec.m + 1, j]
+            self._x[k] = x
+            y[i] += gain * float(sec.C @ x)
+        self.steps += 1
+        return y
+
+    @classmethod
+    def from_history(cls, dm: DiscreteModel, du: np.ndarray) -> LiveEstimator:
+        """The estimator as it would be after stepping through ``du`` (factors, N), computed in batch."""
+        est = cls(dm)
+        du = np.asarray(du, dtype=float)
+        for k, (_, j, _, sec) in enumerate(est._flat):
+            est._x[k] = sec.final_state(du[j])
+        n = du.shape[1]
+        for d in range(min(n, est._hist.shape[0])):
+            est._hist[d] = du[:, n - 1 - d]
+        est.steps = n
+        return est
+
+    def output(self) -> np.ndarray:
+        """Current displacement per axis without advancing."""
+        y = np.zeros(len(self.dm.model.axes))
+        for k, (i, _, gain, sec) in enumerate(self._flat):
+            y[i] += gain * float(sec.C @ self._x[k])
+        return y
+
+
+# ---------------------------------------------------------------------------------------------- TOML ---
+def model_to_toml(model: ThermalModel) -> str:
+    """The model file text; every (axis, factor) pair is written, zero paths included."""
+    doc: dict[str, Any] = {
+        "format": FORMAT,
+        "model": {"machine": model.machine, "axes": list(model.axes), "factors": list(model.factors)},
+        "units": dict(model.units),
+        "reference": dict(model.reference),
+    }
+    if model.info:
+        doc["info"] = _plain(model.info)
+    paths = []
+    for a in model.axes:
+        for f in model.factors:
+            p = model.path(a, f)
+            entry: dict[str, Any] = {"axis": a, "factor": f, "kind": p.kind, "gain": p.gain, "K": p.K}
+            if p.delay_s:
+                entry["delay_s"] = p.delay_s
+            terms = []
+            for t in p.terms:
+                if isinstance(t, FirstOrder):
+                    terms.append({"kind": t.kind, "gain": t.gain, "tau_s": t.tau_s})
+                else:
+                    terms.append({"kind": t.kind, "gain": t.gain, "K": t.K, "zeta": t.zeta,
+                                  "omega_rad_s": t.omega_rad_s})
+            if terms:
+                entry["term"] = terms
+            if p.sd:
+                entry["sd"] = dict(p.sd)
+            paths.append(entry)
+    doc["path"] = paths
+    header = ("# cncgw thermal model: lambda_i = sum_j G_ij(s) (u_j - reference_j)\n"
+              "# gain: static gain in um per factor unit; K = 1/gain is the paper's K (eq. 12).\n"
+              "# kind, gain and K of a path are written for people; the terms are what counts.\n")
+    return header + tomli_w.dumps(doc)
+
+
+def save_model(model: ThermalModel, path: str | Path) -> Path:
+    """Write the model file atomically."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(model_to_toml(model), encoding="utf-8")
+    tmp.replace(path)
+    return path
+
+
+def load_model(path: str | Path, *, text: str | None = None) -> ThermalModel:
+    """Read and check a model file; raise :class:`ModelError` listing every problem."""
+    doc = TomlDoc(path, error=ModelError, text=text)
+    root = doc.root
+    fmt = root.int("format", expected=f"the model format number {FORMAT}")
+    if fmt is not None and fmt != FORMAT:
+        root.problem("format", f"expected {FORMAT}, got {fmt}: this model was written by another version")
+    head = root.table("model", required=True)
+    axes: tuple[str, ...] = ()
+    factors: tuple[str, ...] = ()
+    machine = ""
+    if head is not None:
+        machine = head.str("machine", default="")
+        axes = head.str_list("axes", choices=("x", "y", "z"), min_len=1) or ()
+        factors = head.str_list("factors", min_len=1) or ()
+        head.done()
+    units = _name_table(root.table("units"), factors, str)
+    reference = _name_table(root.table("reference"), factors, float)
+    info_t = root.table("info")
+    info = dict(info_t.data) if info_t is not None else {}
+    if info_t is not None:
+        for k in info_t:
+            info_t.raw(k)
+
+    paths: dict[tuple[str, str], PathTF] = {}
+    raw = root.raw("path", default=[], expected="an array of [[path]] tables")
+    if not isinstance(raw, list):
+        root.problem("path", "expected an array of [[path]] tables")
+        raw = []
+    for n, entry in enumerate(raw):
+        if not isinstance(entry, dict):
+            root.problem("path", f"entry {n + 1}: expected a [[path]] table")
+            continue
+        t = Table(doc, entry, ("path", str(n + 1)))
+        p = _parse_path(t, axes, factors)
+        if p is not None:
+            if (p.axis, p.factor) in paths:
+                t.problem(None, f"a second path for axis {p.axis}, factor {p.factor}: expected one per pair")
+            paths[(p.axis, p.factor)] = p
+    root.done()
+    doc.raise_problems()
+    return ThermalModel(axes=axes, factors=factors, units=units, reference=reference, paths=paths,
+                        machine=machine, info=info)
+
+
+def _name_table(t: Table | None, factors: Sequence[str], kind: type) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    if t is None:
+        return out
+    for f in factors:
+        if f in t:
+            out[f] = t.str(f) if kind is str else t.float(f)
+    t.done()
+    return out
+
+
+def _parse_path(t: Table, axes: Sequence[str], factors: Sequence[str]) -> PathTF | None:
+    axis = t.str("axis", choices=axes)
+    factor = t.str("factor", choices=factors)
+    t.str("kind", default="")  # written for people; recomputed from the terms
+    gain = t.float("gain", default=None)
+    K = t.float("K", default=None, allow_inf=True)
+    delay = t.float("delay_s", default=0.0, min=0.0)
+    sd_t = t.table("sd")
+    sd = {}
+    if sd_t is not None:
+        for k in sd_t:
+            v = sd_t.float(k, min=0.0, allow_inf=True)
+            if v is not None:
+                sd[k] = v
+        sd_t.done()
+    terms: list[Term] = []
+    raw_terms = t.raw("term", default=[], expected="an array of [[path.term]] tables")
+    for n, rt in enumerate(raw_terms if isinstance(raw_terms, list) else []):
+        tt = Table(t.doc, rt, (*t.path, "term", str(n + 1))) if isinstance(rt, dict) else None
+        if tt is None:
+            t.problem("term", f"entry {n + 1}: expected a [[path.term]] table")
+            continue
+        term = _parse_term(tt)
+        if term is not None:
+            terms.append(term)
+    t.done()
+    if axis is None or factor is None or delay is None:
+        return None
+    p = PathTF(axis=axis, factor=factor, terms=tuple(terms), delay_s=delay, sd=MappingProxyType(sd))
+    # the summary keys must agree with the terms, so a hand edit of one without the other is caught
+    if gain is not None and not math.isclose(gain, p.gain, rel_tol=1e-9, abs_tol=1e-15):
+        t.problem("gain", f"{gain!r} does not match the sum of the terms' gains {p.gain!r}: edit the terms")
+    if K is not None and not (math.isinf(K) and math.isinf(p.K)) and not math.isclose(K, p.K, rel_tol=1e-9):
+        t.problem("K", f"{K!r} does not match 1/gain = {p.K!r}")
+    return p
+
+
+def _parse_term(t: Table) -> Term | None:
+    kind = t.str("kind", choices=list(TERM_KINDS))
+    if kind == FirstOrder.kind:
+        gain = t.float("gain")
+        tau = t.float("tau_s", min=0.0, min_exclusive=True)
+        t.done()
+        return FirstOrder(gain=gain, tau_s=tau) if None not in (gain, tau) else None
+    if kind == SecondOrder.kind:
+        gain = t.float("gain", default=None)
+        K = t.float("K", default=None, allow_inf=True)
+        zeta = t.float("zeta", min=0.0, min_exclusive=True)
+        omega = t.float("omega_rad_s", min=0.0, min_exclusive=True)
+        t.done()
+        if gain is None and K is None:
+            t.problem(None, 'missing "gain" (um per factor unit) or the paper\'s "K" (= 1/gain)')
+            return None
+        if gain is None:
+            gain = 0.0 if math.isinf(K) else 1.0 / K
+        elif K is not None and not (math.isinf(K) and gain == 0) and not math.isclose(
+                K * gain, 1.0, rel_tol=1e-9):
+            t.problem("K", f"{K!r} does not match 1/gain = {1 / gain if gain else math.inf!r}")
+        return SecondOrder(gain=gain, zeta=zeta, omega_rad_s=omega) if None not in (zeta, omega) else None
+    t.done()
+    return None

@@ -1,0 +1,290 @@
+"""Machine profiles: one TOML file per machine, parsed once into frozen typed objects.
+
+A profile says which displacement axes are estimated, which heat-generating factors feed the model and
+how each is computed from a live channel (mean, mean of squares, mean of |x| over a window), how
+recordings are laid out, where the model file lives, and (filled by the acquisition and compensation
+work) which devices and channels the gateway reads and how it writes compensation. See
+``profiles/template.toml`` for every key with its meaning.
+
+Nothing downstream sees a raw dict: :func:`load_profile` returns a :class:`Profile` or raises one
+:class:`~gateway.errors.ProfileError` that lists every problem with file, line, key path, bad value and
+what was expected.
+"""
+
+from __future__ import annotations
+
+import enum
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+from gateway.errors import ProfileError
+from gateway.tomlcheck import NAME, Table, TomlDoc
+
+AXES = ("x", "y", "z")
+_UNIT = re.compile(r"[^\n]{1,32}")
+
+
+class Stat(enum.StrEnum):
+    """How a factor is computed from a channel's fast samples over one window."""
+
+    MEAN = "mean"  # speed: friction and hysteresis heat ~ speed
+    MEAN_SQUARE = "mean_square"  # current: Joule heat ~ I^2 (mean of squares, not square of mean)
+    MEAN_ABS = "mean_abs"  # feed velocity: friction ~ |v| whichever the direction
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Factor:
+    """One heat-generating factor: an input of the thermal model."""
+
+    name: str
+    unit: str
+    channel: str
+    stat: Stat
+    column: str
+    description: str = ""
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Sampling:
+    """Fast sampling period and averaging window."""
+
+    fast_period_s: float
+    window_s: float
+
+    @property
+    def samples_per_window(self) -> int:
+        return round(self.window_s / self.fast_period_s)
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class RecordingLayout:
+    """How per-window recordings of this machine are laid out (see ``gateway.recording``)."""
+
+    time_column: str
+    period_s: float
+    displacement_columns: MappingProxyType[str, str]
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Device:
+    """A device the gateway reads (an ADC board, a CNC terminal). ``options`` are checked by its driver."""
+
+    name: str
+    driver: str
+    options: Any
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Channel:
+    """A live signal on a device, in engineering units after the driver's scaling."""
+
+    name: str
+    device: str
+    unit: str
+    address: Any
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Compensation:
+    """How estimates are written back to the CNC. Writing is off unless a profile turns it on."""
+
+    enabled: bool = False
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Profile:
+    """A machine, as its profile describes it."""
+
+    path: Path
+    name: str
+    description: str
+    axes: tuple[str, ...]
+    sampling: Sampling
+    factors: tuple[Factor, ...]
+    recording: RecordingLayout
+    model_path: Path
+    devices: tuple[Device, ...] = ()
+    channels: tuple[Channel, ...] = ()
+    compensation: Compensation = field(default_factory=Compensation)
+
+    @property
+    def factor_names(self) -> tuple[str, ...]:
+        return tuple(f.name for f in self.factors)
+
+    def factor(self, name: str) -> Factor:
+        for f in self.factors:
+            if f.name == name:
+                return f
+        raise KeyError(name)
+
+
+# --------------------------------------------------------------------------------------------------------
+def load_profile(path: str | Path) -> Profile:
+    """Read and check a profile; raise :class:`ProfileError` listing every problem."""
+    doc = TomlDoc(path, error=ProfileError)
+    root = doc.root
+
+    machine = root.table("machine", required=True)
+    name = description = ""
+    axes: tuple[str, ...] = AXES
+    if machine is not None:
+        name = machine.str("name") or ""
+        description = machine.str("description", default="")
+        axes = machine.str_list("axes", default=AXES, choices=AXES, min_len=1) or AXES
+        machine.done()
+
+    sampling_t = root.table("sampling")
+    fast = window = None
+    if sampling_t is not None:
+        fast = sampling_t.float("fast_period_s", default=0.002, min=0.0, min_exclusive=True, max=10.0)
+        window = sampling_t.float("window_s", default=60.0, min=0.0, min_exclusive=True, max=86400.0)
+        sampling_t.done()
+    fast = fast if fast is not None else 0.002
+    window = window if window is not None else 60.0
+    if sampling_t is not None and window < fast:
+        sampling_t.problem("window_s", f"window ({window:g} s) must be at least one fast period ({fast:g} s)")
+    sampling = Sampling(fast_period_s=fast, window_s=window)
+
+    factors = _parse_factors(root)
+
+    rec_t = root.table("recording")
+    time_column, period_s, disp_cols = "time_s", window, {a: f"{a}_um" for a in axes}
+    if rec_t is not None:
+        time_column = rec_t.str("time_column", default="time_s")
+        period_s = rec_t.float("period_s", default=window, min=0.0, min_exclusive=True) or window
+        cols_t = rec_t.table("displacement_columns")
+        if cols_t is not None:
+            for a in axes:
+                disp_cols[a] = cols_t.str(a, default=disp_cols[a])
+            cols_t.done()
+        rec_t.done()
+    recording = RecordingLayout(time_column=time_column, period_s=period_s,
+                                displacement_columns=MappingProxyType(disp_cols))
+    _check_columns_distinct(root, factors, recording)
+
+    model_t = root.table("model")
+    model_file = f"{doc.path.stem}.model.toml"
+    if model_t is not None:
+        model_file = model_t.str("file", default=model_file)
+        model_t.done()
+    model_path = (doc.path.parent / model_file) if model_file else doc.path.with_suffix(".model.toml")
+
+    devices, channels = _parse_acquisition(root, factors)
+
+    comp_t = root.table("compensation")
+    compensation = Compensation()
+    if comp_t is not None:
+        compensation = Compensation(enabled=comp_t.bool("enabled", default=False))
+        comp_t.done()
+
+    root.done()
+    doc.raise_problems()
+    return Profile(
+        path=doc.path, name=name, description=description, axes=axes, sampling=sampling,
+        factors=tuple(factors), recording=recording, model_path=model_path,
+        devices=tuple(devices), channels=tuple(channels), compensation=compensation,
+    )
+
+
+def _parse_factors(root: Table) -> list[Factor]:
+    factors = []
+    items = root.tables("factors", required=True, name_pattern=NAME)
+    if "factors" in root and not items and not root.doc.problems:
+        root.problem("factors", "no factors defined: expected at least one [factors.NAME] table")
+    for fname, t in items:
+        unit = t.str("unit", pattern=_UNIT, expected="a unit such as \"rpm\" or \"A^2\"")
+        stat = t.str("stat", choices=[s.value for s in Stat])
+        channel = t.str("channel", default=fname)
+        column = t.str("column", default=fname)
+        desc = t.str("description", default="")
+        t.done()
+        if unit is None or stat is None:
+            continue
+        factors.append(Factor(name=fname, unit=unit, channel=channel or fname, stat=Stat(stat),
+                              column=column or fname, description=desc or ""))
+    return factors
+
+
+def _check_columns_distinct(root: Table, factors: list[Factor], rec: RecordingLayout) -> None:
+    seen: dict[str, str] = {}
+    for f in factors:
+        seen.setdefault(f.column, f"factors.{f.name}.column")
+    for axis, col in rec.displacement_columns.items():
+        if col in seen:
+            root.doc.problem(("recording", "displacement_columns", axis),
+                             f'column "{col}" is already used by {seen[col]}: expected a column of its own')
+        seen.setdefault(col, f"recording.displacement_columns.{axis}")
+    if rec.time_column in seen:
+        root.doc.problem(("recording", "time_column"),
+                         f'column "{rec.time_column}" is already used by {seen[rec.time_column]}')
+
+
+def _parse_acquisition(root: Table, factors: list[Factor]) -> tuple[list[Device], list[Channel]]:
+    """``[devices.NAME]`` and ``[channels.NAME]``: their driver-specific keys are checked by the driver."""
+    from drivers import registry  # the registry decides which drivers exist and what options they take
+
+    devices: list[Device] = []
+    for dname, t in root.tables("devices", name_pattern=NAME):
+        driver = t.str("driver", choices=registry.names())
+        if driver is None:
+            continue
+        options = registry.parse_device_options(driver, t)
+        t.done()
+        devices.append(Device(name=dname, driver=driver, options=options))
+    by_name = {d.name: d for d in devices}
+
+    channels: list[Channel] = []
+    for cname, t in root.tables("channels", name_pattern=NAME):
+        dev = t.str("device", choices=list(by_name) or None,
+                    expected="the name of a [devices.NAME] table" if not by_name else "a string")
+        unit = t.str("unit", default="")
+        if dev is None or dev not in by_name:
+            continue
+        address = registry.parse_channel_address(by_name[dev].driver, t)
+        t.done()
+        channels.append(Channel(name=cname, device=dev, unit=unit or "", address=address))
+
+    if channels:
+        names = [c.name for c in channels]
+        for f in factors:
+            if f.channel not in names:
+                from gateway.errors import did_you_mean
+
+                root.doc.problem(("factors", f.name, "channel"),
+                                 f'no channel "{f.channel}": expected the name of a [channels.NAME] table'
+                                 f"{did_you_mean(f.channel, names)}")
+    return devices, channels
+
+
+# --------------------------------------------------------------------------------------------------------
+def format_summary(profile: Profile) -> str:
+    """Human summary printed by ``cncgw profile check``."""
+    s = profile.sampling
+    lines = [
+        f"profile   {profile.path}: OK",
+        f"machine   {profile.name}" + (f": {profile.description}" if profile.description else ""),
+        f"axes      {', '.join(profile.axes)} (displacement in um)",
+        f"sampling  fast period {s.fast_period_s * 1000:g} ms, window {s.window_s:g} s "
+        f"({s.samples_per_window} samples per window)",
+        f"factors   {len(profile.factors)}",
+    ]
+    w = max(len(f.name) for f in profile.factors)
+    for f in profile.factors:
+        lines.append(f"  {f.name:<{w}}  {f.stat.value:<11}  of channel {f.channel:<{w}}  [{f.unit}]"
+                     f"  column {f.column}")
+    rec = profile.recording
+    disp = ", ".join(f"{a}={c}" for a, c in rec.displacement_columns.items())
+    lines.append(f"recording time column {rec.time_column}, period {rec.period_s:g} s, displacement {disp}")
+    lines.append(f"model     {profile.model_path}" + ("" if profile.model_path.exists() else
+                                                       " (not found: create it with `cncgw identify`)"))
+    if profile.devices:
+        lines.append(f"devices   {len(profile.devices)}: " +
+                     ", ".join(f"{d.name} ({d.driver})" for d in profile.devices))
+        lines.append(f"channels  {len(profile.channels)}: " + ", ".join(c.name for c in profile.channels))
+    else:
+        lines.append("devices   none (offline profile: recordings only)")
+    lines.append(f"compensation {'ENABLED: writes to the CNC' if profile.compensation.enabled else 'off (dry run)'}")
+    return "\n".join(lines)

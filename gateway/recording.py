@@ -1,0 +1,354 @@
+"""Per-window recordings: the CSV files that ``identify``, ``estimate`` and ``diagnose`` read.
+
+Format (one row per window, normally one minute)::
+
+    # cncgw recording 1                      <- optional comment lines, anywhere; "# key: value"
+    # scenario: spindle-1000rpm                 lines are kept as metadata
+    time_s,spindle_speed,i1_sq,...,x_um,y_um,z_um,ambient_c
+    60,0,0.81,...,0.00,0.00,0.00,20.1
+    120,1000,5.2,...,0.13,-0.02,0.41,20.1
+
+- Time: a column of seconds, or of ISO 8601 stamps (``2024-05-01T08:00:00``; naive stamps are taken
+  as UTC), or none at all when the caller gives the row period. A row stamped ``t`` holds the means over
+  the window ``(t - period, t]``; displacement columns are samples taken at ``t``.
+- Factor columns and displacement columns (um) are named by the profile; every other column is kept
+  (numeric ones as numbers, others as text) for later analysis, e.g. an ambient temperature.
+- Real files are messy: a UTF-8 BOM, blanks around cells and comment lines are accepted; an empty cell
+  or ``nan`` is a missing value. Time that does not increase, a non-numeric cell in a numeric column or a
+  missing required column is an error naming the file, the row (file line) and the column.
+- Gaps stay explicit: rows are placed on a regular grid of the nominal period, and a missing window is a
+  row of NaN with ``present[k] == False``, never an interpolated value.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from types import MappingProxyType
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from gateway.errors import RecordingError, did_you_mean
+
+if TYPE_CHECKING:
+    from gateway.profile import Profile
+
+FORMAT_LINE = "cncgw recording 1"
+_MISSING_TOKENS = {"", "nan", "NaN", "NAN", "na", "NA", "n/a", "N/A", "null", "NULL", "-"}
+
+
+@dataclass(frozen=True, slots=True)
+class Gap:
+    """Windows missing from a recording: ``rows`` missing windows after the row stamped ``after_s``."""
+
+    after_s: float
+    rows: int
+
+    def __str__(self) -> str:
+        return f"{self.rows} missing window{'s' if self.rows != 1 else ''} after t={self.after_s:g} s"
+
+
+@dataclass(frozen=True, kw_only=True)
+class Recording:
+    """A recording on a regular grid. Arrays are read-only; missing windows are NaN rows."""
+
+    source: str
+    period_s: float
+    time_s: np.ndarray
+    present: np.ndarray
+    factors: Mapping[str, np.ndarray]
+    displacement: Mapping[str, np.ndarray]
+    extras: Mapping[str, np.ndarray] = field(default_factory=dict)
+    text: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+    meta: Mapping[str, str] = field(default_factory=dict)
+    gaps: tuple[Gap, ...] = ()
+
+    def __post_init__(self) -> None:
+        n = len(self.time_s)
+        for group in (self.factors, self.displacement, self.extras):
+            for key, arr in group.items():
+                if arr.shape != (n,):
+                    raise ValueError(f"column {key!r}: wrong shape {arr.shape}, expected ({n},)")
+        for arr in (self.time_s, self.present, *self.factors.values(), *self.displacement.values(),
+                    *self.extras.values()):
+            arr.flags.writeable = False
+
+    @property
+    def name(self) -> str:
+        return Path(self.source).stem if self.source else "recording"
+
+    def __len__(self) -> int:
+        return len(self.time_s)
+
+    @property
+    def duration_s(self) -> float:
+        return float(len(self) * self.period_s)
+
+    def factor_matrix(self, names: Sequence[str]) -> np.ndarray:
+        """Factors as an array of shape (len(names), N)."""
+        return np.vstack([self.factors[n] for n in names]) if names else np.zeros((0, len(self)))
+
+    def slice(self, start: int, stop: int) -> Recording:
+        """Rows ``start:stop`` as a recording of their own (gaps recomputed)."""
+        sl = slice(start, stop)
+        t = self.time_s[sl]
+        present = self.present[sl]
+        return Recording(
+            source=self.source, period_s=self.period_s, time_s=t.copy(), present=present.copy(),
+            factors={k: v[sl].copy() for k, v in self.factors.items()},
+            displacement={k: v[sl].copy() for k, v in self.displacement.items()},
+            extras={k: v[sl].copy() for k, v in self.extras.items()},
+            text={k: v[sl] for k, v in self.text.items()}, meta=self.meta,
+            gaps=_gaps_from_mask(t, present),
+        )
+
+
+def _gaps_from_mask(time_s: np.ndarray, present: np.ndarray) -> tuple[Gap, ...]:
+    gaps, k, n = [], 0, len(present)
+    while k < n:
+        if not present[k]:
+            j = k
+            while j < n and not present[j]:
+                j += 1
+            gaps.append(Gap(after_s=float(time_s[k - 1]) if k > 0 else float("nan"), rows=j - k))
+            k = j
+        else:
+            k += 1
+    return tuple(gaps)
+
+
+# --------------------------------------------------------------------------------------------------------
+def _parse_time(cell: str) -> float:
+    try:
+        return float(cell)
+    except ValueError:
+        pass
+    text = cell.strip()
+    if text.endswith(("Z", "z")):
+        text = text[:-1] + "+00:00"
+    stamp = datetime.fromisoformat(text)  # raises ValueError
+    if stamp.tzinfo is None:
+        stamp = stamp.replace(tzinfo=UTC)
+    return stamp.timestamp()
+
+
+def read_recording(
+    path: str | Path,
+    *,
+    factor_columns: Mapping[str, str],
+    displacement_columns: Mapping[str, str],
+    time_column: str | None = "time_s",
+    period_s: float = 60.0,
+    require_displacement: bool = True,
+    text: str | None = None,
+) -> Recording:
+    """Read one recording CSV.
+
+    ``factor_columns`` maps factor name -> column, ``displacement_columns`` axis -> column (um).
+    ``time_column=None`` means the file has no time column and rows are ``period_s`` apart. Missing
+    displacement columns are an error only when ``require_displacement``.
+    """
+    path = Path(path)
+    if not period_s > 0:
+        raise RecordingError(f"{path}: the row period must be > 0 s. Got {period_s!r}")
+    if text is None:
+        try:
+            text = path.read_text(encoding="utf-8-sig")
+        except FileNotFoundError:
+            raise RecordingError(f"{path}: file not found") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise RecordingError(f"{path}: cannot read: {exc}") from None
+    else:
+        text = text.removeprefix("\ufeff")
+
+    meta: dict[str, str] = {}
+    header: list[str] | None = None
+    header_line = 0
+    rows: list[tuple[int, list[str]]] = []
+    for lineno, cells in _csv_rows(text):
+        first = cells[0].strip() if cells else ""
+        if not any(c.strip() for c in cells):
+            continue
+        if first.startswith("#"):
+            body = ",".join(cells).strip().lstrip("#").strip()
+            key, sep, value = body.partition(":")
+            if sep and key.strip() and " " not in key.strip():
+                meta[key.strip()] = value.strip()
+            continue
+        if header is None:
+            header = [c.strip() for c in cells]
+            header_line = lineno
+            continue
+        rows.append((lineno, cells))
+    if header is None:
+        raise RecordingError(f"{path}: no header row: expected a line of column names such as "
+                             f"{time_column or 'spindle_speed'},...")
+    if header and header[0] == "" and all(h for h in header[1:]):
+        header[0] = "_index"  # pandas-style unnamed index column
+    for i, h in enumerate(header):
+        if not h:
+            raise RecordingError(f"{path}:{header_line}: column {i + 1} has an empty name")
+        if header.count(h) > 1:
+            raise RecordingError(f'{path}:{header_line}: column "{h}" appears {header.count(h)} times')
+    col = {h: i for i, h in enumerate(header)}
+
+    def need(name: str, what: str) -> int:
+        if name not in col:
+            raise RecordingError(f'{path}:{header_line}: missing column "{name}" ({what})'
+                                 f"{did_you_mean(name, header)}; columns are: {', '.join(header)}")
+        return col[name]
+
+    t_idx = need(time_column, "time in seconds or ISO 8601; or give the row period if the file has none") \
+        if time_column is not None else None
+    f_idx = {f: need(c, f"factor {f}") for f, c in factor_columns.items()}
+    d_idx: dict[str, int] = {}
+    for axis, c in displacement_columns.items():
+        if c in col:
+            d_idx[axis] = col[c]
+        elif require_displacement:
+            need(c, f"measured displacement {axis} in um")
+    used = {i for i in (t_idx, *f_idx.values(), *d_idx.values()) if i is not None}
+    extra_cols = [h for i, h in enumerate(header) if i not in used]
+
+    n = len(rows)
+    width = len(header)
+    times = np.empty(n)
+    numeric_needed = {i: h for i, h in enumerate(header) if i in used and i != t_idx}
+    data = np.full((n, width), np.nan)
+    text_cells: dict[str, list[str]] = {h: [] for h in extra_cols}
+    non_numeric: set[str] = set()
+    for r, (lineno, cells) in enumerate(rows):
+        if len(cells) != width:
+            raise RecordingError(f"{path}:{lineno}: row has {len(cells)} cells, expected {width} "
+                                 f"(one per column of the header on line {header_line})")
+        if t_idx is not None:
+            cell = cells[t_idx].strip()
+            try:
+                times[r] = _parse_time(cell)
+            except ValueError:
+                raise RecordingError(f'{path}:{lineno}: column "{time_column}": "{cell}" is not a time: '
+                                     "expected seconds or an ISO 8601 stamp") from None
+        else:
+            times[r] = r * period_s
+        for i, h in enumerate(header):
+            if i == t_idx:
+                continue
+            cell = cells[i].strip()
+            if h in text_cells:
+                text_cells[h].append(cell)
+            if cell in _MISSING_TOKENS:
+                continue
+            try:
+                value = float(cell)
+            except ValueError:
+                if i in numeric_needed:
+                    raise RecordingError(f'{path}:{lineno}: column "{h}": "{cell}" is not a number') from None
+                non_numeric.add(h)
+                continue
+            if math.isinf(value) and i in numeric_needed:
+                raise RecordingError(f'{path}:{lineno}: column "{h}": "{cell}" is not a finite number')
+            data[r, i] = value
+
+    if n and not np.all(np.isfinite(times)):
+        bad = int(np.flatnonzero(~np.isfinite(times))[0])
+        raise RecordingError(f'{path}:{rows[bad][0]}: column "{time_column}": time must be finite')
+    # time must increase; place rows on the nominal grid, keeping gaps explicit
+    steps = np.diff(times)
+    if np.any(steps <= 0):
+        k = int(np.flatnonzero(steps <= 0)[0])
+        raise RecordingError(
+            f'{path}:{rows[k + 1][0]}: column "{time_column}": time does not increase '
+            f"({times[k + 1]:g} s after {times[k]:g} s on line {rows[k][0]}); expected strictly increasing time")
+    ratio = steps / period_s
+    if np.any(ratio < 0.5):
+        k = int(np.flatnonzero(ratio < 0.5)[0])
+        raise RecordingError(
+            f'{path}:{rows[k + 1][0]}: column "{time_column}": rows only {steps[k]:g} s apart, expected the '
+            f"row period of {period_s:g} s (set the period to the file's own if it differs)")
+    slots = np.concatenate([[0], np.cumsum(np.maximum(1, np.rint(ratio).astype(int)))]) if n else np.zeros(0, int)
+    total = int(slots[-1]) + 1 if n else 0
+    present = np.zeros(total, dtype=bool)
+    present[slots] = True
+    grid_t = times[0] + period_s * np.arange(total) if n else np.zeros(0)
+    if n:
+        grid_t[slots] = times  # keep each row's own stamp; missing rows sit on the nominal grid
+
+    def column(i: int) -> np.ndarray:
+        out = np.full(total, np.nan)
+        out[slots] = data[:, i]
+        return out
+
+    extras = {h: column(col[h]) for h in extra_cols if h not in non_numeric}
+    texts = {h: tuple(text_cells[h]) for h in extra_cols if h in non_numeric}
+    return Recording(
+        source=str(path), period_s=float(period_s), time_s=grid_t, present=present,
+        factors={f: column(i) for f, i in f_idx.items()},
+        displacement={a: column(i) for a, i in d_idx.items()},
+        extras=extras, text=texts, meta=MappingProxyType(meta),
+        gaps=_gaps_from_mask(grid_t, present),
+    )
+
+
+def _csv_rows(text: str) -> Iterable[tuple[int, list[str]]]:
+    reader = csv.reader(io.StringIO(text))
+    for cells in reader:
+        yield reader.line_num, cells
+
+
+def read_for_profile(path: str | Path, profile: Profile, *, period_s: float | None = None,
+                     require_displacement: bool = True) -> Recording:
+    """Read a recording laid out as ``profile`` says. ``period_s`` set means: the file has no time column."""
+    rec = profile.recording
+    return read_recording(
+        path,
+        factor_columns={f.name: f.column for f in profile.factors},
+        displacement_columns=dict(rec.displacement_columns),
+        time_column=None if period_s is not None else rec.time_column,
+        period_s=period_s if period_s is not None else rec.period_s,
+        require_displacement=require_displacement,
+    )
+
+
+# --------------------------------------------------------------------------------------------------------
+def _fmt(x: float) -> str:
+    return "" if not math.isfinite(x) else repr(float(x))
+
+
+def format_recording(
+    *,
+    time_s: np.ndarray,
+    columns: Mapping[str, np.ndarray],
+    meta: Mapping[str, str] | None = None,
+    time_column: str = "time_s",
+) -> str:
+    """CSV text for a recording; NaN becomes an empty cell; floats are written to round-trip exactly."""
+    out = io.StringIO()
+    out.write(f"# {FORMAT_LINE}\n")
+    for key, value in (meta or {}).items():
+        out.write(f"# {key}: {value}\n")
+    names = list(columns)
+    out.write(",".join([time_column, *names]) + "\n")
+    arrays = [np.asarray(columns[n], dtype=float) for n in names]
+    for k, t in enumerate(np.asarray(time_s, dtype=float)):
+        out.write(",".join([_fmt(t), *(_fmt(a[k]) for a in arrays)]) + "\n")
+    return out.getvalue()
+
+
+def write_recording(path: str | Path, **kwargs: object) -> Path:
+    """Write :func:`format_recording` output atomically (temp file, fsync, rename)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", encoding="utf-8", newline="") as fh:
+        fh.write(format_recording(**kwargs))  # type: ignore[arg-type]
+        fh.flush()
+        import os
+
+        os.fsync(fh.fileno())
+    tmp.replace(path)
+    return path

@@ -1,0 +1,1 @@
+"""Bundled simulators: a physical machine model behind device servers that speak the real protocols."""
