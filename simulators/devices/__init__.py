@@ -1,0 +1,1 @@
+"""Simulated devices (see simulators/live.py for the contract between machine and devices)."""
