@@ -19,6 +19,9 @@ from gateway.errors import GatewayError
 #: command modules, in the order ``cncgw --help`` lists them
 COMMAND_MODULES = (
     "gateway.commands.profile",
+    "gateway.commands.identify",
+    "gateway.commands.estimate",
+    "gateway.commands.model",
     "simulators.cli",
 )
 

@@ -191,7 +191,8 @@ def load_profile(path: str | Path) -> Profile:
 
 def _parse_factors(root: Table) -> list[Factor]:
     factors = []
-    items = root.tables("factors", required=True, name_pattern=NAME)
+    items = root.tables("factors", required=True, name_pattern=NAME,
+                        expected="at least one [factors.NAME] table with unit and stat")
     if "factors" in root and not items and not root.doc.problems:
         root.problem("factors", "no factors defined: expected at least one [factors.NAME] table")
     for fname, t in items:
@@ -228,7 +229,9 @@ def _parse_acquisition(root: Table, factors: list[Factor]) -> tuple[list[Device]
 
     devices: list[Device] = []
     for dname, t in root.tables("devices", name_pattern=NAME):
-        driver = t.str("driver", choices=registry.names())
+        known = registry.names()
+        driver = t.str("driver", choices=known,
+                       expected=None if known else "the name of an installed driver (none is installed)")
         if driver is None:
             continue
         options = registry.parse_device_options(driver, t)
@@ -271,10 +274,11 @@ def format_summary(profile: Profile) -> str:
         f"({s.samples_per_window} samples per window)",
         f"factors   {len(profile.factors)}",
     ]
-    w = max(len(f.name) for f in profile.factors)
-    for f in profile.factors:
-        lines.append(f"  {f.name:<{w}}  {f.stat.value:<11}  of channel {f.channel:<{w}}  [{f.unit}]"
-                     f"  column {f.column}")
+    rows = [(f.name, f.stat.value, f"of channel {f.channel}", f"[{f.unit}]", f"column {f.column}")
+            for f in profile.factors]
+    widths = [max(len(r[k]) for r in rows) for k in range(4)]
+    for r in rows:
+        lines.append("  " + "  ".join(c.ljust(w) for c, w in zip(r[:4], widths, strict=True)) + "  " + r[4])
     rec = profile.recording
     disp = ", ".join(f"{a}={c}" for a, c in rec.displacement_columns.items())
     lines.append(f"recording time column {rec.time_column}, period {rec.period_s:g} s, displacement {disp}")

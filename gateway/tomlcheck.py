@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 import re
 import tomllib
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -112,6 +112,9 @@ class Table:
     def keys(self) -> list[str]:
         return list(self.data)
 
+    def __iter__(self) -> Iterator[str]:
+        return iter(list(self.data))
+
     def problem(self, key: str | None, message: str) -> None:
         self.doc.problem(self.path + ((key,) if key else ()), message)
 
@@ -128,11 +131,11 @@ class Table:
 
     # -- typed getters ----------------------------------------------------------------------------------
     def str(self, key: str, *, default: Any = _MISSING, choices: Iterable[str] | None = None,
-            expected: str = "a string", pattern: re.Pattern[str] | None = None) -> Any:
+            expected: str | None = None, pattern: re.Pattern[str] | None = None) -> Any:
         """A string; with ``choices`` one of them (did-you-mean on a near miss)."""
         choices = list(choices) if choices is not None else None
-        if choices is not None and expected == "a string":
-            expected = expected_one_of(choices)
+        if expected is None:
+            expected = expected_one_of(choices) if choices else "a string"
         value = self._get(key, default, expected)
         if value is _MISSING:
             return default if default is not _MISSING else None

@@ -77,6 +77,23 @@ class PathTF:
             out.append((t.gain, Section.from_state_space(A, B, C, dt_s, self.delay_s)))
         return out
 
+    def impulse_response(self, t_s: np.ndarray) -> np.ndarray:
+        """g(t): the path's weighting function (um per factor unit per second), the paper's g_ij."""
+        t_s = np.asarray(t_s, dtype=float)
+        out = np.zeros_like(t_s)
+        shifted = t_s - self.delay_s
+        on = shifted >= 0
+        for term in self.terms:
+            A, B, C = term.unit_state_space()
+            w, V = np.linalg.eig(A)
+            # C e^{At} B through the eigen-decomposition (distinct poles; critically damped is nudged apart)
+            if np.isclose(w[0], w[-1]) and len(w) > 1:
+                A = A + np.diag([1e-9 * abs(w[0]), 0.0])
+                w, V = np.linalg.eig(A)
+            coef = (C @ V) * np.linalg.solve(V, B)
+            out[on] += term.gain * np.real(np.exp(np.outer(shifted[on], w)) @ coef)
+        return out
+
     def describe(self) -> str:
         if self.kind == "zero":
             return "0"
@@ -249,6 +266,23 @@ class LiveEstimator:
         for k, (i, _, gain, sec) in enumerate(self._flat):
             y[i] += gain * float(sec.C @ self._x[k])
         return y
+
+
+def paper_convolution(model: ThermalModel, du: np.ndarray, dt_s: float, n_terms: int) -> np.ndarray:
+    """The paper's estimator, eq. 5-6: lambda_i(k dt) = sum_j sum_{l=0..n} g_ij(l dt) u_j((k-l) dt) dt.
+
+    A reference for tests: it is a rectangle rule on the convolution integral, so it differs from the
+    exact zero-order-hold result by its own discretisation error, and its work grows with ``n_terms``.
+    """
+    du = np.asarray(du, dtype=float)
+    t = dt_s * np.arange(n_terms + 1)
+    y = np.zeros((len(model.axes), du.shape[1]))
+    for i, a in enumerate(model.axes):
+        for j, f in enumerate(model.factors):
+            p = model.path(a, f)
+            if p.kind != "zero":
+                y[i] += np.convolve(du[j], p.impulse_response(t) * dt_s)[: du.shape[1]]
+    return y
 
 
 # ---------------------------------------------------------------------------------------------- TOML ---

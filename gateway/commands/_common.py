@@ -1,0 +1,78 @@
+"""Pieces the commands share: reading recordings for a profile, loading a model that fits the profile."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from gateway.errors import GatewayError, ModelError
+from gateway.model import ThermalModel, load_model
+from gateway.profile import Profile
+from gateway.recording import Recording, read_for_profile
+
+
+def positive_float(text: str) -> float:
+    """Argparse type: a number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
+    return value
+
+
+def add_recording_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--period-s", type=positive_float, default=None, metavar="S",
+                   help="the files have no time column: rows are S seconds apart")
+    p.add_argument("--gap-policy", choices=("hold", "reference"), default="hold",
+                   help="factors during missing windows: hold the last window's values (default) or assume "
+                        "the machine idle at the reference state; gaps are reported either way")
+
+
+def read_recordings(paths: Sequence[str], profile: Profile, *, period_s: float | None,
+                    require_displacement: bool) -> list[Recording]:
+    return [read_for_profile(p, profile, period_s=period_s, require_displacement=require_displacement)
+            for p in paths]
+
+
+def load_model_for(profile: Profile, path: str | Path | None) -> tuple[ThermalModel, Path]:
+    """Load the model (default: the profile's) and check it fits the profile's factors, units and axes."""
+    path = Path(path) if path else profile.model_path
+    if not path.exists():
+        raise ModelError(f"{path}: model file not found; create it with `cncgw identify --profile "
+                         f"{profile.path} EXPERIMENTS... -o {path}`")
+    model = load_model(path)
+    problems = []
+    for f in model.factors:
+        if f not in profile.factor_names:
+            problems.append(f'{path}: factor "{f}" is not in profile {profile.path} '
+                            f"(its factors: {', '.join(profile.factor_names)})")
+        elif model.units.get(f) and model.units[f] != profile.factor(f).unit:
+            problems.append(f'{path}: factor "{f}" is in {model.units[f]} but profile {profile.path} says '
+                            f"{profile.factor(f).unit}")
+    for a in model.axes:
+        if a not in profile.axes:
+            problems.append(f"{path}: axis {a} is not among the profile's axes ({', '.join(profile.axes)})")
+    if problems:
+        raise ModelError("\n".join(problems))
+    return model, path
+
+
+def progress_bar(total: int | None, desc: str) -> tuple[Callable[[str], None], Callable[[], None]]:
+    """A tqdm bar on stderr (silent when stderr is not a terminal): (update with a message, close)."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, desc=desc, unit="fit", disable=None, leave=False)
+
+    def update(message: str) -> None:
+        bar.set_postfix_str(message, refresh=False)
+        bar.update(1)
+
+    return update, bar.close
+
+
+def fail_if_exists(path: Path, force: bool) -> None:
+    if path.exists() and not force:
+        raise GatewayError(f"{path} exists: pass --force to overwrite it")

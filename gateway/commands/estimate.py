@@ -1,0 +1,71 @@
+"""``cncgw estimate``: a model and recordings in, estimated displacement and its errors out."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from gateway.commands._common import add_recording_options, load_model_for, read_recordings
+from gateway.errors import GatewayError
+from gateway.estimate import ALIGN_CHOICES, estimate, metrics_json, plot_estimates
+from gateway.prepare import INITIAL_CHOICES
+from gateway.profile import load_profile
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Add ``cncgw estimate``."""
+    p = sub.add_parser(
+        "estimate", help="estimate displacement for recordings and report the errors",
+        description="Estimate the thermal displacement for recordings and, where displacement was measured, "
+                    "report per axis the RMS error, the max |error|, the peak |displacement| and the max error "
+                    "as a percentage of the peak.")
+    p.add_argument("--profile", required=True, metavar="PROFILE", help="machine profile (TOML)")
+    p.add_argument("--model", metavar="MODEL", help="model file (default: the profile's)")
+    p.add_argument("recordings", nargs="+", metavar="RECORDING", help="recordings (CSV)")
+    p.add_argument("-o", "--output", metavar="PRED",
+                   help="write estimates as CSV: a file for one recording, a directory for several")
+    p.add_argument("--json", action="store_true", help="print the metrics as JSON instead of text")
+    p.add_argument("--plot", metavar="PNG", help="draw measured vs estimated displacement and the residual")
+    p.add_argument("--initial", choices=INITIAL_CHOICES, default="first",
+                   help="initial state: in equilibrium with the first window (default) or with the model's "
+                        "reference levels (for recordings that start mid-work)")
+    p.add_argument("--align", choices=ALIGN_CHOICES, default="start",
+                   help="measured zero: equal to the estimate at the first measured window (default), as "
+                        "recorded (none), or best constant offset (optimistic)")
+    add_recording_options(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Estimate every recording; print metrics; write CSV and plot on request."""
+    profile = load_profile(args.profile)
+    model, model_path = load_model_for(profile, args.model)
+    recs = read_recordings(args.recordings, profile, period_s=args.period_s, require_displacement=False)
+    ests = [estimate(model, r, initial=args.initial, gap_policy=args.gap_policy, align=args.align) for r in recs]
+    if args.output:
+        out = Path(args.output)
+        meta = {"model": str(model_path), "profile": str(profile.path)}
+        if len(ests) == 1 and not out.is_dir():
+            out.write_text(ests[0].to_csv({**meta, "recording": ests[0].recording}))
+        else:
+            if out.exists() and not out.is_dir():
+                raise GatewayError(f"{out}: expected a directory for {len(ests)} recordings")
+            out.mkdir(parents=True, exist_ok=True)
+            for e in ests:
+                (out / f"{Path(e.recording).stem}.pred.csv").write_text(e.to_csv({**meta, "recording": e.recording}))
+    if args.json:
+        print(metrics_json(ests))
+    else:
+        for e in ests:
+            print(f"{e.recording} (model {model_path}):")
+            for note in e.notes:
+                print(f"  note: {note}")
+            if not e.metrics:
+                print("  no measured displacement: estimates only")
+            for m in e.metrics.values():
+                print(f"  {m.line()}")
+    if args.plot:
+        plot_estimates(ests, args.plot, title=f"{profile.name}: {model_path.name}")
+        if not args.json:
+            print(f"wrote {args.plot}")
+    return 0

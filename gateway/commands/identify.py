@@ -1,0 +1,73 @@
+"""``cncgw identify``: experiments in, model file out."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from gateway.commands._common import add_recording_options, progress_bar, read_recordings
+from gateway.identify import identify
+from gateway.identify.api import identification_summary
+from gateway.identify.joint import CANDIDATES
+from gateway.model import save_model
+from gateway.profile import load_profile
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Add ``cncgw identify``."""
+    p = sub.add_parser(
+        "identify", help="identify a model from experiment recordings",
+        description="Identify the thermal model (axis x factor transfer functions) from experiment recordings. "
+                    "Each recording must start with the machine in thermal equilibrium (idle, powered long "
+                    "enough); its first window is the experiment's initial state.")
+    p.add_argument("--profile", required=True, metavar="PROFILE", help="machine profile (TOML)")
+    p.add_argument("experiments", nargs="+", metavar="EXPERIMENT", help="experiment recordings (CSV)")
+    p.add_argument("-o", "--output", metavar="MODEL", help="model file to write (default: the profile's)")
+    p.add_argument("--method", choices=("joint", "paper"), default="joint",
+                   help="joint (default): all paths of an axis at once, with structure choice and uncertainties; "
+                        "paper: the paper's V^-1 separation and steepest descent, as a reference")
+    p.add_argument("--structures", default=",".join(CANDIDATES), metavar="LIST",
+                   help=f"joint method: path structures to choose from (default {','.join(CANDIDATES)})")
+    p.add_argument("--no-prune", action="store_true", help="joint method: keep paths whose gain is not significant")
+    p.add_argument("--plot", metavar="PNG", help="also draw measured vs fitted displacement of every experiment")
+    add_recording_options(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Identify, write the model, print the report."""
+    profile = load_profile(args.profile)
+    structures = tuple(s.strip() for s in args.structures.split(",") if s.strip())
+    bad = [s for s in structures if s not in CANDIDATES]
+    if bad or not structures:
+        raise SystemExit(f"cncgw identify: error: --structures: {', '.join(bad) or 'empty'}: expected a comma-"
+                         f"separated list from {', '.join(CANDIDATES)}")
+    recs = read_recordings(args.experiments, profile, period_s=args.period_s, require_displacement=True)
+    total = len(profile.axes) * (len(structures) if args.method == "joint" else len(profile.factors))
+    update, close = progress_bar(total, f"identify ({args.method})")
+    try:
+        result = identify(recs, factors=profile.factor_names, axes=profile.axes,
+                          units={f.name: f.unit for f in profile.factors}, machine=profile.name,
+                          method=args.method, candidates=structures, prune=not args.no_prune,
+                          gap_policy=args.gap_policy,
+                          progress=lambda m: None if "pruning" in m else update(m))
+    finally:
+        close()
+    out = Path(args.output) if args.output else profile.model_path
+    save_model(result.model, out)
+    print(f"identified {len(result.model.axes)} axes x {len(result.model.factors)} factors from "
+          f"{len(recs)} experiment(s) with the {args.method} method in {result.wall_s:.1f} s")
+    for line in result.notes:
+        print(f"note: {line}")
+    for line in result.report:
+        print(line)
+    print()
+    print("\n".join(identification_summary(result.model)))
+    if args.plot:
+        from gateway.estimate import estimate, plot_estimates
+
+        ests = [estimate(result.model, r, align="offset", gap_policy=args.gap_policy) for r in recs]
+        plot_estimates(ests, args.plot, title=f"{profile.name}: identification fit ({args.method})")
+        print(f"wrote {args.plot}")
+    print(f"wrote {out}")
+    return 0

@@ -1,0 +1,185 @@
+"""Estimate displacement for a recording with a model, and judge it against what was measured.
+
+Alignment: measured displacement has an arbitrary zero (sensors are zeroed whenever someone zeroes
+them). ``align="start"`` (the paper's convention: displacement relative to the start) shifts the
+measurement so that it equals the estimate over the idle lead-in (the windows before any factor moves,
+at most :data:`LEAD_IN_MAX`, at least the first measured one), which averages the sensor noise out of the
+zero; ``"none"`` takes it as it is (sensors zeroed at the reference state); ``"offset"`` subtracts the
+best constant offset (reported, and optimistic: it uses the whole run).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gateway.model.model import ThermalModel
+from gateway.prepare import prepare
+from gateway.recording import Recording, format_recording
+
+ALIGN_CHOICES = ("start", "none", "offset")
+#: most windows of idle lead-in averaged for the measured zero
+LEAD_IN_MAX = 10
+
+
+@dataclass(frozen=True, kw_only=True)
+class AxisMetrics:
+    """How well one axis was estimated: errors over the windows that have a measurement."""
+
+    axis: str
+    windows: int
+    rms_um: float
+    max_abs_error_um: float
+    peak_um: float
+    max_error_pct_of_peak: float
+    offset_um: float  # what alignment subtracted from the measurement
+
+    def line(self) -> str:
+        return (f"{self.axis}: RMS {self.rms_um:.3f} um, max |error| {self.max_abs_error_um:.3f} um, "
+                f"peak |displacement| {self.peak_um:.3f} um, max error {self.max_error_pct_of_peak:.1f} % of peak "
+                f"({self.windows} windows)")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Estimate:
+    """Estimated and (aligned) measured displacement of one recording, with metrics per axis."""
+
+    recording: str
+    axes: tuple[str, ...]
+    time_s: np.ndarray
+    estimated: np.ndarray  # (axes, N) um
+    measured: np.ndarray  # (axes, N) um after alignment, NaN where not measured
+    present: np.ndarray
+    metrics: dict[str, AxisMetrics]
+    notes: tuple[str, ...] = ()
+    settings: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def residual(self) -> np.ndarray:
+        return self.measured - self.estimated
+
+    def to_json(self) -> dict[str, object]:
+        return {
+            "recording": self.recording,
+            "settings": self.settings,
+            "axes": {a: _finite(asdict(m)) for a, m in self.metrics.items()},
+            "notes": list(self.notes),
+        }
+
+    def to_csv(self, meta: dict[str, str] | None = None) -> str:
+        cols: dict[str, np.ndarray] = {}
+        for i, a in enumerate(self.axes):
+            cols[f"{a}_est_um"] = self.estimated[i]
+            cols[f"{a}_meas_um"] = self.measured[i]
+            cols[f"{a}_resid_um"] = self.residual[i]
+        return format_recording(time_s=self.time_s, columns=cols, meta={**self.settings, **(meta or {})})
+
+
+def _finite(d: dict[str, object]) -> dict[str, object]:
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
+
+
+def estimate(
+    model: ThermalModel,
+    rec: Recording,
+    *,
+    initial: str = "first",
+    gap_policy: str = "hold",
+    align: str = "start",
+) -> Estimate:
+    """Run the model over a recording (batch replay of the same discretisation the live estimator uses)."""
+    if align not in ALIGN_CHOICES:
+        raise ValueError(f"align must be one of {ALIGN_CHOICES}. Got {align!r}")
+    prep = prepare(rec, factors=model.factors, axes=model.axes, initial=initial, reference=model.reference,
+                   gap_policy=gap_policy)
+    est = model.discretize(rec.period_s).simulate(prep.du)
+    measured = prep.y.copy()
+    notes = list(prep.notes)
+    metrics: dict[str, AxisMetrics] = {}
+    for i, a in enumerate(model.axes):
+        ok = np.isfinite(measured[i])
+        if not ok.any():
+            if a in rec.displacement:
+                notes.append(f"axis {a}: no measured value in any window")
+            continue
+        if align == "start":
+            lead = np.zeros_like(ok)
+            lead[: min(_lead_in(prep.du), LEAD_IN_MAX)] = True
+            use = lead & ok
+            if not use.any():
+                use = np.zeros_like(ok)
+                use[int(np.flatnonzero(ok)[0])] = True
+            offset = float(np.mean(measured[i, use] - est[i, use]))
+        elif align == "offset":
+            offset = float(np.mean(measured[i, ok] - est[i, ok]))
+        else:
+            offset = 0.0
+        measured[i] -= offset
+        err = measured[i, ok] - est[i, ok]
+        peak = float(np.max(np.abs(measured[i, ok])))
+        max_err = float(np.max(np.abs(err)))
+        metrics[a] = AxisMetrics(axis=a, windows=int(ok.sum()), rms_um=float(np.sqrt(np.mean(err**2))),
+                                 max_abs_error_um=max_err, peak_um=peak,
+                                 max_error_pct_of_peak=100.0 * max_err / peak if peak > 0 else math.inf,
+                                 offset_um=offset)
+    return Estimate(recording=rec.source, axes=model.axes, time_s=prep.time_s, estimated=est,
+                    measured=measured, present=prep.present, metrics=metrics, notes=tuple(notes),
+                    settings={"initial": initial, "gap_policy": gap_policy, "align": align})
+
+
+def _lead_in(du: np.ndarray, share: float = 0.01) -> int:
+    """Windows before any factor moves by more than ``share`` of its largest move (at least 1)."""
+    size = np.abs(du).max(axis=1, keepdims=True)
+    moving = (np.abs(du) > share * size) & (size > 0)
+    first = np.flatnonzero(moving.any(axis=0))
+    return max(int(first[0]) if first.size else du.shape[1], 1)
+
+
+def plot_estimates(estimates: Sequence[Estimate], path: str | Path, *, title: str = "") -> Path:
+    """Measured vs estimated displacement per axis, and the residual, for one or more recordings."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    axes = estimates[0].axes
+    fig, grid = plt.subplots(2, len(axes), figsize=(4.2 * len(axes), 6.5), sharex="col", squeeze=False)
+    for k, e in enumerate(estimates):
+        hours = (e.time_s - e.time_s[0]) / 3600.0
+        label = Path(e.recording).stem if len(estimates) > 1 else None
+        for i, a in enumerate(axes):
+            top, bottom = grid[0, i], grid[1, i]
+            color = f"C{k % 10}"
+            top.plot(hours, e.measured[i], color=color, lw=1.0, alpha=0.6,
+                     label=f"{label} measured" if label else "measured")
+            top.plot(hours, e.estimated[i], color=color, lw=1.6, ls="--",
+                     label=f"{label} estimated" if label else "estimated")
+            bottom.plot(hours, e.residual[i], color=color, lw=1.0)
+            m = e.metrics.get(a)
+            if m and len(estimates) == 1:
+                top.set_title(f"{a}: peak {m.peak_um:.1f} um, max error {m.max_abs_error_um:.2f} um "
+                              f"({m.max_error_pct_of_peak:.0f} %)", fontsize=9)
+            elif len(estimates) > 1:
+                top.set_title(a)
+            top.set_ylabel(f"{a} displacement (um)")
+            bottom.set_ylabel(f"{a} measured - estimated (um)")
+            bottom.set_xlabel("time (h)")
+            bottom.axhline(0, color="k", lw=0.5)
+    grid[0, 0].legend(fontsize=7, loc="best")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def metrics_json(estimates: Sequence[Estimate]) -> str:
+    """The metrics of every estimate as a JSON document (for ``--json``)."""
+    return json.dumps([e.to_json() for e in estimates], indent=2)

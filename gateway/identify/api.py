@@ -1,0 +1,143 @@
+"""``identify``: recordings of experiments in, a :class:`~gateway.model.ThermalModel` and a report out."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+
+import numpy as np
+
+from gateway import __version__
+from gateway.errors import IdentificationError
+from gateway.identify.common import ExperimentSet
+from gateway.identify.joint import CANDIDATES, AxisSelection, select_axis
+from gateway.identify.paper import active_factors, describe_groups, identify_paper
+from gateway.model.model import ThermalModel
+from gateway.prepare import prepare
+from gateway.recording import Recording
+
+METHODS = ("joint", "paper")
+
+
+@dataclass(kw_only=True)
+class IdentifyResult:
+    """The model plus what a person needs to judge it."""
+
+    model: ThermalModel
+    method: str
+    experiments: tuple[str, ...]
+    wall_s: float
+    report: list[str] = field(default_factory=list)
+    selections: list[AxisSelection] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+
+def identify(
+    recordings: Sequence[Recording],
+    *,
+    factors: Sequence[str],
+    axes: Sequence[str],
+    units: Mapping[str, str] | None = None,
+    machine: str = "",
+    method: str = "joint",
+    candidates: Sequence[str] = CANDIDATES,
+    prune: bool = True,
+    gap_policy: str = "hold",
+    progress: Callable[[str], None] | None = None,
+) -> IdentifyResult:
+    """Identify a model from experiment recordings.
+
+    Each recording is one experiment that starts with the machine in thermal equilibrium (after a long
+    idle, powered): its first window defines the experiment's initial state. The model's ``reference``
+    is the mean of those initial factor levels, for live use.
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}. Got {method!r}")
+    t0 = time.perf_counter()
+    notes: list[str] = []
+    preps = []
+    for rec in recordings:
+        p = prepare(rec, factors=factors, axes=axes, initial="first", gap_policy=gap_policy)
+        preps.append(p)
+        notes += [f"{p.name}: {n}" for n in p.notes]
+        for i, a in enumerate(axes):
+            if not np.isfinite(p.y[i]).any():
+                notes.append(f"{p.name}: no measured displacement on axis {a}; it does not inform axis {a}")
+    es = ExperimentSet.from_prepared(preps, factors=factors, axes=axes)
+    act = active_factors(es)
+    active = act.any(axis=0)
+    for j, f in enumerate(factors):
+        if not active[j]:
+            notes.append(f"factor {f} does not change in any experiment: its paths are set to zero "
+                         "(not identifiable from these experiments)")
+    for i, a in enumerate(axes):
+        if not np.isfinite(es.y[i]).any():
+            raise IdentificationError(f"no experiment has measured displacement on axis {a}; "
+                                      "identification needs it on every axis it estimates")
+
+    report: list[str] = []
+    selections: list[AxisSelection] = []
+    paths = []
+    info: dict[str, object] = {
+        "method": method, "experiments": list(es.names), "window_s": es.dt_s,
+        "identified_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"), "cncgw_version": __version__,
+    }
+    if method == "joint":
+        for i in range(len(axes)):
+            sel = select_axis(es, i, active=list(active), candidates=candidates, prune=prune, progress=progress)
+            selections.append(sel)
+            paths += sel.chosen.paths(factors)
+            report += _axis_report(sel)
+            info[f"axis_{axes[i]}"] = {
+                "structure": _structure_name(sel.chosen.structures), "rms_um": sel.chosen.rms,
+                "residual_lag1_autocorrelation": sel.rho, "effective_samples": sel.n_eff,
+                "bic": {k: f.bic for k, f in sel.tried.items()}, "pruned": list(sel.pruned),
+            }
+    else:
+        fit = identify_paper(es, progress=progress)
+        paths = fit.paths
+        report += describe_groups(es, fit.groups)
+        report.append(f"steepest descent: {fit.evaluations} evaluations of E in {fit.wall_s:.2f} s")
+    reference = {f: float(np.mean(es.u0[:, j])) for j, f in enumerate(factors)}
+    model = ThermalModel(axes=tuple(axes), factors=tuple(factors), units=dict(units or {}), reference=reference,
+                         paths={(p.axis, p.factor): p for p in paths}, machine=machine, info=info)
+    return IdentifyResult(model=model, method=method, experiments=es.names, wall_s=time.perf_counter() - t0,
+                          report=report, selections=selections, notes=notes)
+
+
+def _structure_name(structures: Sequence[str]) -> str:
+    used = sorted({s for s in structures if s != "zero"})
+    return "+".join(used) if used else "zero"
+
+
+def _axis_report(sel: AxisSelection) -> list[str]:
+    fit = sel.chosen
+    lines = [f"axis {sel.axis}: chose {_structure_name(fit.structures)} paths, fit RMS {fit.rms:.3f} um "
+             f"over {fit.n} windows (residual lag-1 autocorrelation {sel.rho:.2f}, "
+             f"effective samples {sel.n_eff:.0f}); {sel.wall_s:.1f} s"]
+    best = min(f.bic for f in sel.tried.values())
+    for name, f in sel.tried.items():
+        mark = "*" if f is fit or (sel.pruned and name == _structure_name(fit.structures)) else " "
+        lines.append(f"  {mark} {name:<13} RMS {f.rms:7.3f} um  parameters {f.k:3d}  "
+                     f"BIC {f.bic - best:+9.1f}")
+    if sel.pruned:
+        lines.append(f"    zero paths after pruning (gain within 2 sd of 0): {', '.join(sel.pruned)}")
+    return lines
+
+
+def identification_summary(model: ThermalModel) -> list[str]:
+    """A table of every path: structure, static gain (um per unit) and K, time constants, sd."""
+    lines = [f"{'axis':<4} {'factor':<16} {'kind':<13} {'gain um/unit':>13} {'sd':>9} {'K':>11}  time constants"]
+    for a in model.axes:
+        for f in model.factors:
+            p = model.path(a, f)
+            if p.kind == "zero":
+                lines.append(f"{a:<4} {f:<16} {'zero':<13} {0.0:>13.4g} {'':>9} {'inf':>11}")
+                continue
+            taus = ", ".join(f"{t / 60:.3g}" for term in p.terms for t in term.time_constants_s)
+            sd = p.sd.get("gain", math.nan)
+            lines.append(f"{a:<4} {f:<16} {p.kind:<13} {p.gain:>13.4g} {sd:>9.2g} {p.K:>11.4g}  {taus} min")
+    return lines

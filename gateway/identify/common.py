@@ -1,0 +1,177 @@
+"""What every identification method shares.
+
+Experiments stacked for fast filtering, and the path structures with their nonlinear parameters (log time
+constants) and linear ones (gains).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from gateway.errors import IdentificationError
+from gateway.model.discrete import Section
+from gateway.model.terms import FirstOrder, SecondOrder, Term
+from gateway.prepare import Prepared
+
+#: path structures identification can choose from, simplest first
+STRUCTURES = ("zero", "first_order", "second_order", "two_modes")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ExperimentSet:
+    """Experiments padded to one length so one ``lfilter`` call filters all of them.
+
+    ``du[j]`` is (E, N) for factor j (zero after an experiment's end: causal filters are unaffected);
+    ``y`` is (axes, E, N), NaN where not measured; ``valid[i]`` marks the rows fitted on axis i.
+    """
+
+    names: tuple[str, ...]
+    factors: tuple[str, ...]
+    axes: tuple[str, ...]
+    dt_s: float
+    du: np.ndarray  # (F, E, N)
+    y: np.ndarray  # (A, E, N)
+    lengths: np.ndarray  # (E,)
+    u0: np.ndarray  # (E, F) initial factor levels
+
+    @classmethod
+    def from_prepared(cls, exps: Sequence[Prepared], *, factors: Sequence[str], axes: Sequence[str]) -> ExperimentSet:
+        if not exps:
+            raise IdentificationError("no experiments given")
+        dts = {round(e.dt_s, 9) for e in exps}
+        if len(dts) != 1:
+            raise IdentificationError(
+                "experiments have different window lengths: "
+                + ", ".join(f"{e.name} {e.dt_s:g} s" for e in exps) + "; expected one window length for all")
+        n = max(e.n for e in exps)
+        du = np.zeros((len(factors), len(exps), n))
+        y = np.full((len(axes), len(exps), n), np.nan)
+        for r, e in enumerate(exps):
+            du[:, r, : e.n] = e.du
+            y[:, r, : e.n] = e.y
+        return cls(names=tuple(e.name for e in exps), factors=tuple(factors), axes=tuple(axes),
+                   dt_s=exps[0].dt_s, du=du, y=y, lengths=np.array([e.n for e in exps]),
+                   u0=np.array([e.u0 for e in exps]))
+
+    @property
+    def n_exp(self) -> int:
+        return self.du.shape[1]
+
+    def valid(self, axis: int) -> np.ndarray:
+        return np.isfinite(self.y[axis])
+
+    @property
+    def longest_s(self) -> float:
+        return float(self.lengths.max() * self.dt_s)
+
+
+# ------------------------------------------------------------------------------------------ structures --
+def n_nonlinear(structure: str) -> int:
+    """Number of time-constant parameters of a structure."""
+    return {"zero": 0, "first_order": 1, "second_order": 2, "two_modes": 2}[structure]
+
+
+def n_linear(structure: str) -> int:
+    """Number of gains of a structure."""
+    return {"zero": 0, "first_order": 1, "second_order": 1, "two_modes": 2}[structure]
+
+
+@dataclass(frozen=True, kw_only=True)
+class Bounds:
+    """Bounds on the nonlinear parameters, from the window length and the experiments' length.
+
+    Second order and two modes are both parametrised by (log tau_slow, log tau_slow/tau_fast), so the bound
+    on the slowest time constant applies directly: a mode much slower than the data would only fit a
+    drift and extrapolate its static gain from nothing. Second order is the paper's form restricted to
+    real poles (zeta >= 1): heat conduction has real poles; an overshoot is two modes of opposite sign.
+    """
+
+    log_tau_min: float
+    log_tau_max: float
+    log_ratio_second: float = 0.0  # second order: tau_slow/tau_fast >= 1 (critically damped at 1)
+    log_ratio_modes: float = math.log(2.0)  # two modes: at least a factor 2 apart, else they are one
+
+    @classmethod
+    def for_data(cls, dt_s: float, longest_s: float) -> Bounds:
+        return cls(log_tau_min=math.log(0.25 * dt_s), log_tau_max=math.log(3.0 * max(longest_s, dt_s)))
+
+    def of(self, structure: str) -> tuple[list[float], list[float]]:
+        span = self.log_tau_max - self.log_tau_min
+        if structure == "first_order":
+            return [self.log_tau_min], [self.log_tau_max]
+        if structure == "second_order":
+            return [self.log_tau_min, self.log_ratio_second], [self.log_tau_max, span]
+        if structure == "two_modes":
+            return [self.log_tau_min + self.log_ratio_modes, self.log_ratio_modes], [self.log_tau_max, span]
+        return [], []
+
+
+def unit_terms(structure: str, theta: Sequence[float]) -> list[Term]:
+    """Unit-gain terms of a structure for nonlinear parameters ``theta`` (log time constants)."""
+    if structure == "zero":
+        return []
+    if structure == "first_order":
+        return [FirstOrder(gain=1.0, tau_s=math.exp(theta[0]))]
+    slow = math.exp(theta[0])
+    fast = slow * math.exp(-theta[1])
+    if structure == "second_order":
+        return [SecondOrder.from_time_constants(gain=1.0, tau1_s=fast, tau2_s=slow)]
+    if structure == "two_modes":
+        return [FirstOrder(gain=1.0, tau_s=fast), FirstOrder(gain=1.0, tau_s=slow)]
+    raise ValueError(f"unknown structure {structure!r}")
+
+
+def theta_from_time_constants(structure: str, taus: Sequence[float], bounds: Bounds) -> list[float]:
+    """Starting nonlinear parameters from one or two time constants (clipped into the bounds)."""
+    lo, hi = bounds.of(structure)
+    taus = sorted(taus)
+    if structure == "first_order":
+        th = [float(np.mean(np.log(taus)))]
+    elif structure in ("second_order", "two_modes"):
+        if len(taus) > 1 and taus[-1] > 2.5 * taus[0]:
+            fast, slow = taus[0], taus[-1]
+        else:  # one time constant: start at the first-order limit (a negligible fast mode)
+            fast, slow = taus[0] / 20.0, taus[0]
+        th = [math.log(slow), math.log(slow / fast)]
+    else:
+        return []
+    return [float(np.clip(v, a + 1e-6, b - 1e-6)) for v, a, b in zip(th, lo, hi, strict=True)]
+
+
+def unit_responses(structure: str, theta: Sequence[float], du: np.ndarray, dt_s: float,
+                   delay_s: float = 0.0) -> list[np.ndarray]:
+    """Responses of each unit-gain term of the structure to ``du`` (E, N): the regressors of its gains."""
+    out = []
+    for term in unit_terms(structure, theta):
+        A, B, C = term.unit_state_space()
+        out.append(Section.from_state_space(A, B, C, dt_s, delay_s).filter(du))
+    return out
+
+
+def terms_with_gains(structure: str, theta: Sequence[float], gains: Sequence[float]) -> tuple[Term, ...]:
+    """The structure's terms with fitted gains."""
+    return tuple(t.with_gain(float(g)) for t, g in zip(unit_terms(structure, theta), gains, strict=True))
+
+
+def effective_n(residuals: Sequence[np.ndarray]) -> tuple[float, float]:
+    """(n_eff, rho): samples worth of independent information in autocorrelated residuals.
+
+    n_eff = N (1 - rho) / (1 + rho) with rho the lag-1 autocorrelation pooled over experiments: thermal
+    residuals are slow, and treating every minute as independent would make any extra parameter look
+    significant.
+    """
+    num = den = 0.0
+    n = 0
+    for r in residuals:
+        r = r[np.isfinite(r)]
+        n += len(r)
+        if len(r) > 2:
+            r = r - r.mean()
+            num += float(np.dot(r[1:], r[:-1]))
+            den += float(np.dot(r, r))
+    rho = min(max(num / den, 0.0), 0.999) if den > 0 else 0.0
+    return max(n * (1 - rho) / (1 + rho), 2.0), rho

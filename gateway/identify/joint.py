@@ -1,0 +1,367 @@
+"""The default identification: all paths of an axis fitted jointly over all experiments at once.
+
+For one axis, every experiment e contributes y_e(k) = o_e + sum_j G_j(s) du_je(k) + noise: a free offset
+per experiment (sensors are zeroed anywhere), every path at once, so co-varying factors need not change in
+exact proportion as the paper's V^-1 separation requires.
+
+- Variable projection: for given time constants the model is linear in the gains and offsets, which are
+  solved by linear least squares inside the residual function; ``scipy.optimize.least_squares`` then only
+  searches the log time constants (one or two per path), which are well scaled and bounded.
+- Starting values from a linear fit over a bank of first-order modes (log-spaced time constants).
+- Structure per axis (first order / second order / two modes, the same for every path of the axis) chosen
+  by an information criterion whose sample size is the effective one of autocorrelated residuals; paths
+  whose gain is not significant are then tried as zero paths and dropped when the criterion allows.
+- Parameter standard deviations from the full Jacobian at the optimum, inflated for residual
+  autocorrelation.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+import scipy.optimize
+
+from gateway.identify.common import (
+    Bounds,
+    ExperimentSet,
+    effective_n,
+    n_linear,
+    n_nonlinear,
+    terms_with_gains,
+    theta_from_time_constants,
+    unit_responses,
+)
+from gateway.model.model import PathTF
+
+CANDIDATES = ("first_order", "second_order", "two_modes")
+
+
+@dataclass(kw_only=True)
+class AxisFit:
+    """One axis fitted with given path structures."""
+
+    axis: str
+    structures: tuple[str, ...]
+    thetas: list[np.ndarray]
+    gains: list[np.ndarray]
+    offsets: np.ndarray
+    rss: float
+    n: int
+    nfev: int = 0
+    residuals: list[np.ndarray] = field(default_factory=list)  # per experiment, NaN where not fitted
+    sd: list[dict[str, float]] = field(default_factory=list)
+    bic: float = math.nan
+
+    @property
+    def k(self) -> int:
+        """Number of fitted parameters, offsets included."""
+        return (sum(n_nonlinear(s) + n_linear(s) for s in self.structures)) + len(self.offsets)
+
+    @property
+    def rms(self) -> float:
+        return math.sqrt(self.rss / max(self.n, 1))
+
+    def paths(self, factors: Sequence[str]) -> list[PathTF]:
+        out = []
+        for j, f in enumerate(factors):
+            s = self.structures[j]
+            terms = terms_with_gains(s, self.thetas[j], self.gains[j]) if s != "zero" else ()
+            sd = self.sd[j] if self.sd else {}
+            out.append(PathTF(axis=self.axis, factor=f, terms=terms, sd=sd))
+        return out
+
+
+class AxisProblem:
+    """The variable-projection problem of one axis.
+
+    For time constants theta the design matrix Phi(theta) holds the unit-gain response of every term
+    plus one offset column per experiment; gains and offsets are its least-squares solution and the
+    residual is r = (I - Q Q^T) y with Phi = Q R. The Jacobian uses Kaufman's approximation
+    dr/dtheta_q = -(I - Q Q^T) (dPhi/dtheta_q) g, and dPhi/dtheta_q touches only the columns of the path
+    that owns theta_q, so a Jacobian costs one extra filter per parameter instead of a whole design matrix.
+    """
+
+    def __init__(self, es: ExperimentSet, axis_index: int) -> None:
+        self.es = es
+        self.i = axis_index
+        self.valid = es.valid(axis_index)
+        self.y = es.y[axis_index][self.valid]
+        self.n = int(self.y.size)
+        if self.n == 0:
+            raise ValueError("no measured displacement on this axis")
+        exp_idx = np.broadcast_to(np.arange(es.n_exp)[:, None], self.valid.shape)[self.valid]
+        self.offset_cols = (exp_idx[:, None] == np.arange(es.n_exp)[None, :]).astype(float)
+        self.bounds = Bounds.for_data(es.dt_s, es.longest_s)
+        self.evaluations = 0
+
+    # -- the design matrix and the projected residual --------------------------------------------------
+    def path_columns(self, j: int, structure: str, theta: Sequence[float]) -> list[np.ndarray]:
+        return [resp[self.valid] for resp in unit_responses(structure, theta, self.es.du[j], self.es.dt_s)]
+
+    def columns(self, structures: Sequence[str], thetas: Sequence[Sequence[float]]) -> np.ndarray:
+        cols = [c for j, s in enumerate(structures) if s != "zero" for c in self.path_columns(j, s, thetas[j])]
+        return np.column_stack([*cols, self.offset_cols]) if cols else self.offset_cols
+
+    def solve(self, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(linear parameters, residual, Q) for a design matrix; columns scaled for conditioning."""
+        scale = np.linalg.norm(phi, axis=0)
+        scale[scale == 0] = 1.0
+        Q, R = scipy.linalg.qr(phi / scale, mode="economic", check_finite=False)
+        qty = Q.T @ self.y
+        # a (near-)rank-deficient design happens when a path's response is nearly another's; keep going
+        diag = np.abs(np.diag(R))
+        keep = diag > 1e-10 * max(diag.max(), 1e-300)
+        coef = np.zeros(phi.shape[1])
+        if keep.all():
+            coef = scipy.linalg.solve_triangular(R, qty, check_finite=False)
+        else:
+            coef[keep] = np.linalg.lstsq(R[np.ix_(keep, keep)], qty[keep], rcond=None)[0]
+        coef = coef / scale
+        resid = self.y - Q @ qty
+        self.evaluations += 1
+        return coef, resid, Q
+
+    def fit(self, structures: Sequence[str], theta0: Sequence[Sequence[float]], *,
+            max_nfev: int = 100) -> AxisFit:
+        structures = tuple(structures)
+        sizes = [n_nonlinear(s) for s in structures]
+        owner = [j for j, n in enumerate(sizes) for _ in range(n)]
+        lo, hi = [], []
+        for s in structures:
+            a, b = self.bounds.of(s)
+            lo += a
+            hi += b
+        x0 = np.array([v for th in theta0 for v in th], dtype=float)
+        if x0.size:
+            x0 = np.clip(x0, np.array(lo) + 1e-6, np.array(hi) - 1e-6)
+
+        def split(x: np.ndarray) -> list[np.ndarray]:
+            out, k = [], 0
+            for n in sizes:
+                out.append(x[k: k + n])
+                k += n
+            return out
+
+        cache: dict[str, object] = {}
+
+        def evaluate(x: np.ndarray) -> tuple[list[np.ndarray], list[list[np.ndarray]], np.ndarray, np.ndarray,
+                                             np.ndarray]:
+            if cache.get("x") is not None and np.array_equal(cache["x"], x):
+                return cache["v"]  # type: ignore[return-value]
+            thetas = split(x)
+            per_path = [self.path_columns(j, s, thetas[j]) if s != "zero" else []
+                        for j, s in enumerate(structures)]
+            flat = [c for cols in per_path for c in cols]
+            phi = np.column_stack([*flat, self.offset_cols]) if flat else self.offset_cols
+            coef, r, Q = self.solve(phi)
+            cache["x"], cache["v"] = x.copy(), (thetas, per_path, coef, r, Q)
+            return cache["v"]  # type: ignore[return-value]
+
+        def residual(x: np.ndarray) -> np.ndarray:
+            return evaluate(x)[3]
+
+        def jacobian(x: np.ndarray) -> np.ndarray:
+            thetas, per_path, coef, _, Q = evaluate(x)
+            gains, k = [], 0
+            for cols in per_path:
+                gains.append(coef[k: k + len(cols)])
+                k += len(cols)
+            J = np.empty((self.n, x.size))
+            for q, j in enumerate(owner):
+                local = q - sum(sizes[:j])
+                h = 1e-6 * max(1.0, abs(thetas[j][local]))
+                th = thetas[j].copy()
+                th[local] += h
+                moved = self.path_columns(j, structures[j], th)
+                v = sum((m - c) * g for m, c, g in zip(moved, per_path[j], gains[j], strict=True)) / h
+                J[:, q] = -(v - Q @ (Q.T @ v))
+            return J
+
+        nfev = 1
+        x = x0
+        if x0.size:
+            sol = scipy.optimize.least_squares(residual, x0, jac=jacobian, bounds=(lo, hi), method="trf",
+                                               x_scale=1.0, max_nfev=max_nfev, xtol=1e-8, ftol=1e-9, gtol=1e-9)
+            x, nfev = sol.x, sol.nfev
+        thetas, per_path, coef, r, _ = evaluate(x)
+        gains, k = [], 0
+        for cols in per_path:
+            gains.append(coef[k: k + len(cols)])
+            k += len(cols)
+        fit = AxisFit(axis=self.es.axes[self.i], structures=structures, thetas=[t.copy() for t in thetas],
+                      gains=gains, offsets=coef[k:], rss=float(r @ r), n=self.n, nfev=nfev)
+        fit.residuals = self._per_experiment(r)
+        return fit
+
+    def best_of(self, structures: Sequence[str], starts: Sequence[Sequence[Sequence[float]]]) -> AxisFit:
+        """Fit from several starting points; keep the lowest residual."""
+        fits = [self.fit(structures, th0) for th0 in starts]
+        return min(fits, key=lambda f: f.rss)
+
+    def _per_experiment(self, r: np.ndarray) -> list[np.ndarray]:
+        full = np.full(self.valid.shape, np.nan)
+        full[self.valid] = r
+        return [full[e, : self.es.lengths[e]] for e in range(self.es.n_exp)]
+
+    # -- uncertainty -------------------------------------------------------------------------------------
+    def uncertainties(self, fit: AxisFit, inflation: float) -> list[dict[str, float]]:
+        """Standard deviations of gains and time constants from the full Jacobian at the optimum."""
+        structures = fit.structures
+        sizes = [n_nonlinear(s) for s in structures]
+        x = np.concatenate([np.asarray(t, float) for t in fit.thetas]) if fit.thetas else np.zeros(0)
+        lin = np.concatenate([*fit.gains, fit.offsets])
+
+        def split(v: np.ndarray) -> list[np.ndarray]:
+            out, k = [], 0
+            for n in sizes:
+                out.append(v[k: k + n])
+                k += n
+            return out
+
+        base = self.columns(structures, fit.thetas)
+        out0 = base @ lin
+        jac_nl = np.empty((self.n, x.size))
+        for q in range(x.size):
+            h = 1e-6 * max(1.0, abs(x[q]))
+            xp = x.copy()
+            xp[q] += h
+            jac_nl[:, q] = (self.columns(structures, split(xp)) @ lin - out0) / h
+        J = np.column_stack([jac_nl, base])
+        s2 = fit.rss / max(self.n - J.shape[1], 1)
+        cov = np.linalg.pinv(J.T @ J) * s2 * inflation
+        var = np.clip(np.diag(cov), 0, None)
+        out: list[dict[str, float]] = []
+        qn, ql = 0, x.size
+        for j, s in enumerate(structures):
+            d: dict[str, float] = {}
+            th = fit.thetas[j]
+            if s == "first_order":
+                d["tau_s"] = math.exp(th[0]) * math.sqrt(var[qn])
+            elif s in ("second_order", "two_modes"):
+                d["tau_slow_s"] = math.exp(th[0]) * math.sqrt(var[qn])
+                v_fast = var[qn] + var[qn + 1] - 2 * cov[qn, qn + 1]
+                d["tau_fast_s"] = math.exp(th[0] - th[1]) * math.sqrt(max(v_fast, 0.0))
+            m = n_linear(s)
+            for t in range(m):
+                d[f"term{t + 1}.gain"] = math.sqrt(var[ql + t])
+            if m:
+                d["gain"] = math.sqrt(max(float(np.sum(cov[ql: ql + m, ql: ql + m])), 0.0))
+            qn += n_nonlinear(s)
+            ql += m
+            out.append(d)
+        return out
+
+
+# ---------------------------------------------------------------------------------------- starting values --
+def bank_start(problem: AxisProblem, active: Sequence[bool], n_modes: int = 12) -> list[list[float]]:
+    """Per factor, the one or two dominant time constants of a ridge fit over a bank of first-order modes."""
+    b = problem.bounds
+    taus = np.geomspace(max(math.exp(b.log_tau_min), problem.es.dt_s), problem.es.longest_s * 2, n_modes)
+    cols, owner = [], []
+    for j, on in enumerate(active):
+        if not on:
+            continue
+        for tau in taus:
+            cols.append(unit_responses("first_order", [math.log(tau)], problem.es.du[j], problem.es.dt_s)[0]
+                        [problem.valid])
+            owner.append(j)
+    starts: list[list[float]] = [[] for _ in active]
+    if not cols:
+        return starts
+    phi = np.column_stack([*cols, problem.offset_cols])
+    scale = np.linalg.norm(phi, axis=0)
+    scale[scale == 0] = 1.0
+    A = phi / scale
+    ridge = 1e-3 * np.trace(A.T @ A) / A.shape[1]
+    coef = np.linalg.solve(A.T @ A + ridge * np.eye(A.shape[1]), A.T @ problem.y) / scale
+    owner_arr = np.array(owner)
+    for j, on in enumerate(active):
+        if not on:
+            continue
+        # weight each bank mode by the displacement it carries (gain x its input's size)
+        g = np.abs(coef[: len(owner)][owner_arr == j]) * np.abs(problem.es.du[j]).max()
+        if not np.any(g > 0):
+            starts[j] = [3600.0]
+            continue
+        order = np.argsort(g)[::-1]
+        first = taus[order[0]]
+        second = next((taus[k] for k in order[1:] if max(taus[k], first) / min(taus[k], first) > 2.5
+                       and g[k] > 0.2 * g[order[0]]), None)
+        starts[j] = [first] if second is None else sorted([first, second])
+    return starts
+
+
+# ----------------------------------------------------------------------------------------- selection --
+@dataclass(kw_only=True)
+class AxisSelection:
+    """The fits tried on one axis and the one chosen."""
+
+    axis: str
+    chosen: AxisFit
+    tried: dict[str, AxisFit]
+    rho: float
+    n_eff: float
+    pruned: tuple[str, ...] = ()
+    wall_s: float = 0.0
+
+
+def bic(fit: AxisFit, n_eff: float) -> float:
+    """Bayesian information criterion with the effective sample size of autocorrelated residuals."""
+    return n_eff * math.log(max(fit.rss, 1e-300) / fit.n) + fit.k * math.log(n_eff)
+
+
+def select_axis(es: ExperimentSet, axis_index: int, *, active: Sequence[bool],
+                candidates: Sequence[str] = CANDIDATES, prune: bool = True,
+                progress: Callable[[str], None] | None = None) -> AxisSelection:
+    """Fit every candidate structure on one axis, choose by :func:`bic`, then prune weak paths."""
+    t0 = time.perf_counter()
+    problem = AxisProblem(es, axis_index)
+    starts = bank_start(problem, active)
+    tried: dict[str, AxisFit] = {}
+    for cand in candidates:
+        if progress:
+            progress(f"axis {es.axes[axis_index]}: {cand}")
+        structures = [cand if on else "zero" for on in active]
+        # start from the bank's time constants, and from every simpler fit already made: a structure
+        # that contains a simpler one must not end up fitting worse than it because of a local minimum
+        seeds = [starts] + [[_time_constants(f, j) for j in range(len(active))] for f in tried.values()]
+        theta_starts = [[theta_from_time_constants(s, seed[j], problem.bounds) if s != "zero" else []
+                         for j, s in enumerate(structures)] for seed in seeds]
+        tried[cand] = problem.best_of(structures, theta_starts)
+    richest = tried[candidates[-1]]
+    n_eff, rho = effective_n(richest.residuals)
+    for fit in tried.values():
+        fit.bic = bic(fit, n_eff)
+    chosen = min(tried.values(), key=lambda f: f.bic)
+    inflation = richest.n / n_eff
+    chosen.sd = problem.uncertainties(chosen, inflation)
+    pruned: tuple[str, ...] = ()
+    if prune:
+        weak = [j for j, s in enumerate(chosen.structures)
+                if s != "zero" and abs(float(np.sum(chosen.gains[j]))) < 2.0 * chosen.sd[j].get("gain", 0.0)]
+        if weak:
+            if progress:
+                progress(f"axis {es.axes[axis_index]}: pruning {len(weak)} weak path(s)")
+            structures = [("zero" if j in weak else s) for j, s in enumerate(chosen.structures)]
+            theta0 = [[] if j in weak else list(th) for j, th in enumerate(chosen.thetas)]
+            smaller = problem.fit(structures, theta0)
+            smaller.nfev += 0
+            smaller.bic = bic(smaller, n_eff)
+            if smaller.bic <= chosen.bic:
+                smaller.sd = problem.uncertainties(smaller, inflation)
+                pruned = tuple(es.factors[j] for j in weak)
+                chosen = smaller
+    return AxisSelection(axis=es.axes[axis_index], chosen=chosen, tried=tried, rho=rho, n_eff=n_eff,
+                         pruned=pruned, wall_s=time.perf_counter() - t0)
+
+
+def _time_constants(fit: AxisFit, j: int) -> list[float]:
+    s, th = fit.structures[j], fit.thetas[j]
+    if s == "zero":
+        return [3600.0]
+    return [float(t) for term in terms_with_gains(s, th, [1.0] * n_linear(s)) for t in term.time_constants_s]

@@ -1,0 +1,119 @@
+"""From a recording to model inputs.
+
+Factor deviations from a reference state, with gaps handled by a stated policy.
+
+The paper's convention: experiments start after the machine has been powered long enough to be in
+thermal equilibrium, and displacement is measured relative to the start. Heat present at rest (the Z
+motor's holding current, the drives' idle losses) is then already in equilibrium, so the model works on
+DEVIATIONS of the factors from that initial steady state. Feeding raw factors into the transfer
+functions would predict a drift that is not there.
+
+- ``initial="first"``: the machine was in equilibrium with the factors of the first recorded window.
+- ``initial="reference"``: it was in equilibrium with the model's reference levels (the idle levels seen
+  during identification); use this when a recording starts in the middle of work.
+
+Gaps (missing windows) are never interpolated silently: ``gap_policy="hold"`` assumes the factors of the
+last window before the gap went on, ``"reference"`` assumes the machine stood idle at the reference
+state; either way the rows stay marked missing and carry no measured displacement.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from gateway.errors import RecordingError
+from gateway.recording import Recording
+
+INITIAL_CHOICES = ("first", "reference")
+GAP_POLICIES = ("hold", "reference")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Prepared:
+    """A recording ready for the model: deviations ``du`` (factors, N), measured ``y`` (axes, N)."""
+
+    name: str
+    dt_s: float
+    time_s: np.ndarray
+    du: np.ndarray
+    u0: np.ndarray
+    y: np.ndarray  # NaN where not measured (gaps, empty cells, axis not recorded)
+    present: np.ndarray
+    notes: tuple[str, ...] = ()
+
+    @property
+    def n(self) -> int:
+        return self.du.shape[1]
+
+
+def prepare(
+    rec: Recording,
+    *,
+    factors: Sequence[str],
+    axes: Sequence[str],
+    initial: str = "first",
+    reference: Mapping[str, float] | None = None,
+    gap_policy: str = "hold",
+) -> Prepared:
+    """Turn ``rec`` into deviations from its initial equilibrium; see the module docstring."""
+    if initial not in INITIAL_CHOICES:
+        raise ValueError(f"initial must be one of {INITIAL_CHOICES}. Got {initial!r}")
+    if gap_policy not in GAP_POLICIES:
+        raise ValueError(f"gap_policy must be one of {GAP_POLICIES}. Got {gap_policy!r}")
+    missing = [f for f in factors if f not in rec.factors]
+    if missing:
+        raise RecordingError(f"{rec.source}: no column for factor(s) {', '.join(missing)}")
+    u = rec.factor_matrix(factors).copy()
+    n = u.shape[1]
+    notes: list[str] = []
+    if n == 0:
+        raise RecordingError(f"{rec.source}: no data rows")
+
+    finite = np.isfinite(u)
+    rows_ok = finite.all(axis=0)
+    if initial == "reference":
+        if reference is None:
+            raise ValueError("initial='reference' needs the model's reference levels")
+        u0 = np.array([reference[f] for f in factors], dtype=float)
+    else:
+        if not rows_ok.any():
+            raise RecordingError(f"{rec.source}: no row has every factor ({', '.join(factors)})")
+        first = int(np.flatnonzero(rows_ok)[0])
+        u0 = u[:, first].copy()
+        if first > 0:
+            notes.append(f"initial state taken from row {first + 1}, the first with every factor present")
+
+    # cells missing inside a present row count as missing windows for that factor
+    bad = ~finite
+    if bad.any():
+        n_bad = int((~rows_ok).sum())
+        missing_rows = int((~rec.present).sum())
+        what = "hold: last window's factors assumed to go on" if gap_policy == "hold" else \
+            "reference: machine assumed idle at the reference state"
+        extra = n_bad - missing_rows
+        notes.append(f"{missing_rows} missing window(s) in {len(rec.gaps)} gap(s)"
+                     + (f" and {extra} row(s) with empty factor cells" if extra > 0 else "")
+                     + f"; gap policy {what}")
+        for j in range(u.shape[0]):
+            row = u[j]
+            if gap_policy == "reference":
+                row[~np.isfinite(row)] = u0[j] if initial == "reference" else (
+                    reference[factors[j]] if reference is not None else u0[j])
+            else:
+                last = u0[j]
+                for k in range(n):
+                    if np.isfinite(row[k]):
+                        last = row[k]
+                    else:
+                        row[k] = last
+
+    y = np.full((len(axes), n), np.nan)
+    for i, a in enumerate(axes):
+        if a in rec.displacement:
+            y[i] = rec.displacement[a]
+    y[:, ~rec.present] = np.nan
+    return Prepared(name=rec.name, dt_s=rec.period_s, time_s=np.asarray(rec.time_s), du=u - u0[:, None],
+                    u0=u0, y=y, present=np.asarray(rec.present), notes=tuple(notes))

@@ -1,0 +1,134 @@
+"""Recording CSV: messy but valid files are read, bad ones fail naming file, line and column."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from gateway.errors import RecordingError
+from gateway.recording import format_recording, read_recording, write_recording
+
+F = {"speed": "speed_rpm", "i1": "i1_sq"}
+D = {"z": "z_um"}
+
+
+def read(text, **kw):
+    kw = {"factor_columns": F, "displacement_columns": D, **kw}
+    return read_recording("rec.csv", text=text, **kw)
+
+
+def test_messy_but_valid_file_is_read():
+    text = ("\ufeff# cncgw recording 1\n# scenario: warm-up\n"
+            " time_s , speed_rpm , i1_sq , z_um , room_c , note\n"
+            "60, 0, 1.5, 0.0, 20.1, idle\n"
+            "# a comment between rows\n"
+            "120 ,1000,5.25 , 0.5 ,20.2, run \n"
+            "\n"
+            "180,1000,5.0,,20.2,run\n")
+    rec = read(text)
+    assert rec.meta == {"scenario": "warm-up"}
+    np.testing.assert_array_equal(rec.time_s, [60, 120, 180])
+    np.testing.assert_array_equal(rec.factors["i1"], [1.5, 5.25, 5.0])
+    assert math.isnan(rec.displacement["z"][2])  # empty cell: missing, not zero
+    np.testing.assert_array_equal(rec.extras["room_c"], [20.1, 20.2, 20.2])  # extra numeric column kept
+    assert rec.text["note"] == ("idle", "run", "run")  # extra text column kept
+    assert rec.gaps == ()
+
+
+def test_iso_time_and_gap_kept_explicit():
+    text = ("time,speed_rpm,i1_sq,z_um\n"
+            "2024-05-01T08:01:00Z,0,1,0\n"
+            "2024-05-01T08:02:00Z,0,1,0.1\n"
+            "2024-05-01T08:05:00Z,500,2,0.4\n")
+    rec = read(text, time_column="time")
+    assert len(rec) == 5  # two missing minutes inserted as explicit NaN rows
+    np.testing.assert_array_equal(rec.present, [True, True, False, False, True])
+    assert np.isnan(rec.factors["speed"][2:4]).all()
+    assert rec.time_s[4] - rec.time_s[0] == 240.0
+    assert len(rec.gaps) == 1
+    assert rec.gaps[0].rows == 2
+    assert str(rec.gaps[0]) == f"2 missing windows after t={rec.time_s[1]:g} s"
+
+
+def test_no_time_column_needs_period():
+    rec = read("speed_rpm,i1_sq,z_um\n0,1,0\n10,2,0.5\n", time_column=None, period_s=30)
+    np.testing.assert_array_equal(rec.time_s, [0, 30])
+    assert rec.period_s == 30
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("time_s,speed_rpm,i1_sq,z_um\n60,0,1,0\n60,0,1,0\n",
+     'rec.csv:3: column "time_s": time does not increase (60 s after 60 s on line 2); expected strictly increasing time'),
+    ("time_s,speed_rpm,i1_sq,z_um\n60,0,1,0\n120,fast,1,0\n",
+     'rec.csv:3: column "speed_rpm": "fast" is not a number'),
+    ("time_s,speed_rpm,i_sq,z_um\n60,0,1,0\n",
+     'rec.csv:1: missing column "i1_sq" (factor i1) (did you mean "i_sq"?); columns are: time_s, speed_rpm, i_sq, z_um'),
+    ("time_s,speed_rpm,i1_sq\n60,0,1\n",
+     'rec.csv:1: missing column "z_um" (measured displacement z in um); columns are: time_s, speed_rpm, i1_sq'),
+    ("time_s,speed_rpm,i1_sq,z_um\n60,0,1\n",
+     "rec.csv:2: row has 3 cells, expected 4 (one per column of the header on line 1)"),
+    ("time_s,speed_rpm,i1_sq,z_um\nyesterday,0,1,0\n",
+     'rec.csv:2: column "time_s": "yesterday" is not a time: expected seconds or an ISO 8601 stamp'),
+    ("time_s,speed_rpm,i1_sq,z_um\n60,0,1,0\n70,0,1,0\n",
+     'rec.csv:3: column "time_s": rows only 10 s apart, expected the row period of 60 s '
+     "(set the period to the file's own if it differs)"),
+    ("time_s,speed_rpm,i1_sq,z_um\n60,inf,1,0\n", 'rec.csv:2: column "speed_rpm": "inf" is not a finite number'),
+    ("# only comments\n", "rec.csv: no header row: expected a line of column names such as time_s,..."),
+    ("time_s,speed_rpm,speed_rpm,i1_sq,z_um\n", 'rec.csv:1: column "speed_rpm" appears 2 times'),
+])
+def test_bad_files_name_file_line_and_column(text, message):
+    with pytest.raises(RecordingError) as err:
+        read(text)
+    assert str(err.value) == message
+
+
+def test_displacement_optional_when_not_required():
+    rec = read("time_s,speed_rpm,i1_sq\n60,0,1\n", require_displacement=False)
+    assert rec.displacement == {}
+
+
+def test_write_read_round_trip_is_exact(tmp_path):
+    rng = np.random.default_rng(3)
+    t = 60.0 * np.arange(1, 51)
+    cols = {"speed_rpm": rng.random(50) * 1000, "i1_sq": rng.random(50) / 7, "z_um": rng.standard_normal(50)}
+    cols["z_um"][7] = np.nan
+    path = write_recording(tmp_path / "r.csv", time_s=t, columns=cols, meta={"seed": "3"})
+    rec = read_recording(path, factor_columns=F, displacement_columns=D)
+    np.testing.assert_array_equal(rec.factors["speed"], cols["speed_rpm"])
+    np.testing.assert_array_equal(rec.factors["i1"], cols["i1_sq"])
+    np.testing.assert_array_equal(rec.displacement["z"], cols["z_um"])
+    assert rec.meta == {"seed": "3"}
+    assert not (tmp_path / "r.csv.tmp").exists()
+
+
+def test_format_writes_missing_as_empty_cells():
+    text = format_recording(time_s=np.array([60.0]), columns={"a": np.array([np.nan])})
+    assert text.splitlines()[-1] == "60.0,"
+
+
+def test_real_spindle_file_without_time_column(shared_data):
+    """SJTU motorized spindle: UTF-8 BOM, no time column, coarse displacement steps, 16 temperatures."""
+    path = shared_data / "sjtu-spindle-thermal" / "thermal_expansion_error_original.csv"
+    rec = read_recording(path, factor_columns={}, displacement_columns={"z": "delta L"}, time_column=None,
+                         period_s=60.0)
+    assert len(rec) == 4683  # SOURCE.md says 4682: its count misses the last row (no final newline)
+    assert set(rec.extras) == {f"T{k}" for k in range(16)}
+    z = rec.displacement["z"]
+    assert z[0] == 0.0
+    assert 17.0 < z.max() < 17.6
+    # coarse resolution: steps of ~0.13 and ~0.26 um, so few distinct levels over 78 h
+    assert len(np.unique(np.round(z, 6))) < 250
+    assert np.min(np.abs(np.diff(z))[np.diff(z) != 0]) > 0.008
+
+
+def test_real_cnc_signal_file_keeps_every_column(shared_data):
+    """UMich CNC drive signals: unnamed index column, text columns, 100 ms rows."""
+    path = shared_data / "umich-cnc-mill-signals" / "experiment_01.csv"
+    rec = read_recording(path, factor_columns={"s": "S1_ActualVelocity", "i": "S1_CurrentFeedback"},
+                         displacement_columns={}, time_column=None, period_s=0.1)
+    assert len(rec) > 400
+    assert "Machining_Process" in rec.text
+    assert "X1_CurrentFeedback" in rec.extras
+    assert np.isfinite(rec.factors["i"]).all()
