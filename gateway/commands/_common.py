@@ -23,6 +23,17 @@ def positive_float(text: str) -> float:
     return value
 
 
+def positive_int(text: str) -> int:
+    """Argparse type: an integer > 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer > 0, got {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected an integer > 0, got {text!r}")
+    return value
+
+
 def add_recording_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--period-s", type=positive_float, default=None, metavar="S",
                    help="the files have no time column: rows are S seconds apart")

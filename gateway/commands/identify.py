@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from gateway.commands._common import add_recording_options, progress_bar, read_recordings
+from gateway.commands._common import add_recording_options, positive_int, progress_bar, read_recordings
 from gateway.identify import identify
 from gateway.identify.api import identification_summary
 from gateway.identify.joint import CANDIDATES
@@ -26,22 +26,29 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", choices=("joint", "paper"), default="joint",
                    help="joint (default): all paths of an axis at once, with structure choice and uncertainties; "
                         "paper: the paper's V^-1 separation and steepest descent, as a reference")
-    p.add_argument("--structures", default=",".join(CANDIDATES), metavar="LIST",
+    p.add_argument("--structures", type=_structures, default=CANDIDATES, metavar="LIST",
                    help=f"joint method: path structures to choose from (default {','.join(CANDIDATES)})")
     p.add_argument("--no-prune", action="store_true", help="joint method: keep paths whose gain is not significant")
+    p.add_argument("--max-iter", type=positive_int, default=3000, metavar="N",
+                   help="paper method: steepest-descent iterations per path (default 3000)")
     p.add_argument("--plot", metavar="PNG", help="also draw measured vs fitted displacement of every experiment")
     add_recording_options(p)
     p.set_defaults(func=run)
 
 
+def _structures(text: str) -> tuple[str, ...]:
+    structures = tuple(s.strip() for s in text.split(",") if s.strip())
+    bad = [s for s in structures if s not in CANDIDATES]
+    if bad or not structures:
+        raise argparse.ArgumentTypeError(f"{', '.join(bad) or 'empty'}: expected a comma-separated list from "
+                                         f"{', '.join(CANDIDATES)}")
+    return structures
+
+
 def run(args: argparse.Namespace) -> int:
     """Identify, write the model, print the report."""
     profile = load_profile(args.profile)
-    structures = tuple(s.strip() for s in args.structures.split(",") if s.strip())
-    bad = [s for s in structures if s not in CANDIDATES]
-    if bad or not structures:
-        raise SystemExit(f"cncgw identify: error: --structures: {', '.join(bad) or 'empty'}: expected a comma-"
-                         f"separated list from {', '.join(CANDIDATES)}")
+    structures = args.structures
     recs = read_recordings(args.experiments, profile, period_s=args.period_s, require_displacement=True)
     total = len(profile.axes) * (len(structures) if args.method == "joint" else len(profile.factors))
     update, close = progress_bar(total, f"identify ({args.method})")
@@ -49,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
         result = identify(recs, factors=profile.factor_names, axes=profile.axes,
                           units={f.name: f.unit for f in profile.factors}, machine=profile.name,
                           method=args.method, candidates=structures, prune=not args.no_prune,
-                          gap_policy=args.gap_policy,
+                          gap_policy=args.gap_policy, paper_max_iter=args.max_iter,
                           progress=lambda m: None if "pruning" in m else update(m))
     finally:
         close()

@@ -46,6 +46,7 @@ def identify(
     candidates: Sequence[str] = CANDIDATES,
     prune: bool = True,
     gap_policy: str = "hold",
+    paper_max_iter: int = 3000,
     progress: Callable[[str], None] | None = None,
 ) -> IdentifyResult:
     """Identify a model from experiment recordings.
@@ -97,7 +98,7 @@ def identify(
                 "bic": {k: f.bic for k, f in sel.tried.items()}, "pruned": list(sel.pruned),
             }
     else:
-        fit = identify_paper(es, progress=progress)
+        fit = identify_paper(es, progress=progress, max_iter=paper_max_iter)
         paths = fit.paths
         report += describe_groups(es, fit.groups)
         report.append(f"steepest descent: {fit.evaluations} evaluations of E in {fit.wall_s:.2f} s")

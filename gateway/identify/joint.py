@@ -233,7 +233,11 @@ class AxisProblem:
             jac_nl[:, q] = (self.columns(structures, split(xp)) @ lin - out0) / h
         J = np.column_stack([jac_nl, base])
         s2 = fit.rss / max(self.n - J.shape[1], 1)
-        cov = np.linalg.pinv(J.T @ J) * s2 * inflation
+        # columns differ by orders of magnitude (rpm-sized responses, unit offsets): scale before inverting
+        norm = np.linalg.norm(J, axis=0)
+        norm[norm == 0] = 1.0
+        Js = J / norm
+        cov = np.linalg.pinv(Js.T @ Js, rcond=1e-12) / np.outer(norm, norm) * s2 * inflation
         var = np.clip(np.diag(cov), 0, None)
         out: list[dict[str, float]] = []
         qn, ql = 0, x.size
@@ -330,9 +334,16 @@ def select_axis(es: ExperimentSet, axis_index: int, *, active: Sequence[bool],
         # start from the bank's time constants, and from every simpler fit already made: a structure
         # that contains a simpler one must not end up fitting worse than it because of a local minimum
         seeds = [starts] + [[_time_constants(f, j) for j in range(len(active))] for f in tried.values()]
-        theta_starts = [[theta_from_time_constants(s, seed[j], problem.bounds) if s != "zero" else []
-                         for j, s in enumerate(structures)] for seed in seeds]
-        tried[cand] = problem.best_of(structures, theta_starts)
+        tried[cand] = problem.best_of(structures, _theta_starts(structures, seeds, problem))
+    # second pass: time constants one structure found are often a good start for another (two modes of
+    # opposite sign are a second order); re-seed each from the others fitted after it
+    for k, cand in enumerate(candidates):
+        later = [tried[c] for c in candidates[k + 1:]]
+        if later:
+            seeds = [[_time_constants(f, j) for j in range(len(active))] for f in later]
+            again = problem.best_of(tried[cand].structures, _theta_starts(tried[cand].structures, seeds, problem))
+            if again.rss < tried[cand].rss:
+                tried[cand] = again
     richest = tried[candidates[-1]]
     n_eff, rho = effective_n(richest.residuals)
     for fit in tried.values():
@@ -358,6 +369,12 @@ def select_axis(es: ExperimentSet, axis_index: int, *, active: Sequence[bool],
                 chosen = smaller
     return AxisSelection(axis=es.axes[axis_index], chosen=chosen, tried=tried, rho=rho, n_eff=n_eff,
                          pruned=pruned, wall_s=time.perf_counter() - t0)
+
+
+def _theta_starts(structures: Sequence[str], seeds: Sequence[Sequence[Sequence[float]]],
+                  problem: AxisProblem) -> list[list[list[float]]]:
+    return [[theta_from_time_constants(s, seed[j], problem.bounds) if s != "zero" else []
+             for j, s in enumerate(structures)] for seed in seeds]
 
 
 def _time_constants(fit: AxisFit, j: int) -> list[float]:

@@ -292,7 +292,7 @@ def model_to_toml(model: ThermalModel) -> str:
         "format": FORMAT,
         "model": {"machine": model.machine, "axes": list(model.axes), "factors": list(model.factors)},
         "units": dict(model.units),
-        "reference": dict(model.reference),
+        "reference": {f: float(v) for f, v in model.reference.items()},
     }
     if model.info:
         doc["info"] = _plain(model.info)
@@ -302,14 +302,14 @@ def model_to_toml(model: ThermalModel) -> str:
             p = model.path(a, f)
             entry: dict[str, Any] = {"axis": a, "factor": f, "kind": p.kind, "gain": p.gain, "K": p.K}
             if p.delay_s:
-                entry["delay_s"] = p.delay_s
+                entry["delay_s"] = float(p.delay_s)
             terms = []
-            for t in p.terms:
+            for t in p.terms:  # floats always, so a loaded model writes the same text again
                 if isinstance(t, FirstOrder):
-                    terms.append({"kind": t.kind, "gain": t.gain, "tau_s": t.tau_s})
+                    terms.append({"kind": t.kind, "gain": float(t.gain), "tau_s": float(t.tau_s)})
                 else:
-                    terms.append({"kind": t.kind, "gain": t.gain, "K": t.K, "zeta": t.zeta,
-                                  "omega_rad_s": t.omega_rad_s})
+                    terms.append({"kind": t.kind, "gain": float(t.gain), "K": t.K, "zeta": float(t.zeta),
+                                  "omega_rad_s": float(t.omega_rad_s)})
             if terms:
                 entry["term"] = terms
             if p.sd:
