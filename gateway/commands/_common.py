@@ -73,8 +73,10 @@ def load_model_for(profile: Profile, path: str | Path | None) -> tuple[ThermalMo
 
 def progress_bar(total: int | None, desc: str) -> tuple[Callable[[str], None], Callable[[], None]]:
     """A tqdm bar on stderr (silent when stderr is not a terminal): (update with a message, close)."""
+    import tqdm as tqdm_module
     from tqdm import tqdm
 
+    tqdm_module.tqdm.monitor_interval = 0  # no monitor thread: our bars are updated by the work itself
     bar = tqdm(total=total, desc=desc, unit="fit", disable=None, leave=False)
 
     def update(message: str) -> None:

@@ -1,0 +1,145 @@
+"""The command line: identify -> estimate on files, and user mistakes as one-line errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gateway.cli import main
+from gateway.model import FirstOrder, PathTF, SecondOrder, ThermalModel, load_model
+from gateway.recording import read_recording, write_recording
+from gateway.synthetic import Segment, make_recording, schedule_inputs
+
+PROFILE = """
+[machine]
+name = "bench-lathe"
+axes = ["x", "z"]
+
+[factors.speed]
+unit = "rpm"
+stat = "mean"
+
+[factors.i_sq]
+unit = "A^2"
+channel = "spindle_current"
+stat = "mean_square"
+"""
+
+TRUTH = ThermalModel(
+    axes=("x", "z"), factors=("speed", "i_sq"), units={"speed": "rpm", "i_sq": "A^2"}, reference={},
+    paths={("z", "speed"): PathTF(axis="z", factor="speed",
+                                  terms=(SecondOrder.from_time_constants(gain=0.01, tau1_s=500, tau2_s=2500),)),
+           ("z", "i_sq"): PathTF(axis="z", factor="i_sq", terms=(FirstOrder(gain=0.05, tau_s=1200),)),
+           ("x", "i_sq"): PathTF(axis="x", factor="i_sq", terms=(FirstOrder(gain=-0.02, tau_s=3000),))})
+
+
+def write(path: Path, levels: list[tuple[int, dict]], seed: int) -> Path:
+    u = schedule_inputs([Segment(minutes=m, levels=lv) for m, lv in levels], TRUTH.factors, {})
+    rec = make_recording(TRUTH, u, name=path.stem, noise_um=0.05, seed=seed, zero_um={"x": 1.0, "z": 4.0})
+    cols = {"speed": rec.factors["speed"], "i_sq": rec.factors["i_sq"], "x_um": rec.displacement["x"],
+            "z_um": rec.displacement["z"]}
+    return write_recording(path, time_s=rec.time_s, columns=cols)
+
+
+@pytest.fixture
+def workdir(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    Path("lathe.toml").write_text(PROFILE)
+    write(Path("exp1.csv"), [(30, {}), (60, {"speed": 2000, "i_sq": 40}), (510, {})], 1)
+    write(Path("exp2.csv"), [(30, {}), (60, {"speed": 800, "i_sq": 60}), (510, {})], 2)
+    write(Path("val.csv"), [(20, {}), (40, {"speed": 1500, "i_sq": 50}), (30, {}), (90, {"speed": 600, "i_sq": 30}),
+                            (180, {})], 3)
+    return tmp_path
+
+
+def test_identify_then_estimate_on_files(workdir, capsys):
+    assert main(["identify", "--profile", "lathe.toml", "exp1.csv", "exp2.csv", "-o", "model.toml",
+                 "--plot", "fit.png"]) == 0
+    out = capsys.readouterr().out
+    assert "identified 2 axes x 2 factors from 2 experiment(s) with the joint method" in out
+    assert "wrote model.toml" in out
+    model = load_model("model.toml")
+    assert model.machine == "bench-lathe"
+    assert model.path("z", "speed").gain == pytest.approx(0.01, rel=0.05)
+    assert Path("fit.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    assert main(["estimate", "--profile", "lathe.toml", "--model", "model.toml", "val.csv", "-o", "pred.csv",
+                 "--json", "--plot", "val.png"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    z = report[0]["axes"]["z"]
+    assert z["peak_um"] > 10.0
+    assert z["max_error_pct_of_peak"] < 5.0  # held-out run, plant of the model's own kind
+    assert report[0]["settings"] == {"initial": "first", "gap_policy": "hold", "align": "start"}
+    pred = read_recording("pred.csv", factor_columns={}, displacement_columns={"z": "z_est_um"})
+    assert len(pred) == 360
+    assert {"x_resid_um", "z_meas_um"} <= set(pred.extras)
+    assert np.nanmax(np.abs(pred.extras["z_resid_um"])) == pytest.approx(z["max_abs_error_um"])
+    assert Path("val.png").read_bytes()[:4] == b"\x89PNG"
+
+    assert main(["model", "show", "model.toml"]) == 0
+    shown = capsys.readouterr().out
+    assert "z    speed" in shown
+    assert "identified with the joint method from exp1, exp2" in shown
+
+
+def test_paper_method_from_the_cli(workdir, capsys):
+    write(Path("exp3.csv"), [(30, {}), (60, {"speed": 1600, "i_sq": 20}), (510, {})], 4)
+    # two co-varying factors need two experiments in different ratios; a third in another ratio breaks (1)
+    code = main(["identify", "--profile", "lathe.toml", "exp1.csv", "exp2.csv", "exp3.csv", "--method", "paper",
+                 "-o", "paper.toml"])
+    err = capsys.readouterr().err
+    assert code == 6
+    assert "condition (1) fails for the factors {speed, i_sq}: they change together in 3 experiment(s)" in err
+    assert main(["identify", "--profile", "lathe.toml", "exp1.csv", "exp2.csv", "--method", "paper",
+                 "--max-iter", "200", "-o", "paper.toml"]) == 0
+    assert "group {speed, i_sq} from exp1, exp2" in capsys.readouterr().out
+    assert load_model("paper.toml").path("z", "speed").kind == "second_order"
+
+
+@pytest.mark.parametrize(("argv", "code", "message"), [
+    (["identify", "--profile", "lathe.toml", "nope.csv"], 4, "cncgw: error: nope.csv: file not found"),
+    (["identify", "--profile", "missing.toml", "exp1.csv"], 3, "cncgw: error: missing.toml: file not found"),
+    (["estimate", "--profile", "lathe.toml", "val.csv"], 5,
+     "cncgw: error: lathe.model.toml: model file not found; create it with `cncgw identify --profile lathe.toml "
+     "EXPERIMENTS... -o lathe.model.toml`"),
+    (["estimate", "--profile", "lathe.toml", "--model", "lathe.toml", "val.csv"], 5,
+     'cncgw: error: lathe.toml:2: machine: unknown key (expected one of: format, info, model, path, reference, units)'),
+    (["identify", "--profile", "lathe.toml", "exp1.csv", "--period-s", "-3"], 2,
+     "argument --period-s: expected a number > 0, got '-3'"),
+    (["identify", "--profile", "lathe.toml", "exp1.csv", "--structures", "third_order"], 2,
+     "argument --structures: third_order: expected a comma-separated list from first_order, second_order, two_modes"),
+])
+def test_user_mistakes_are_one_line_errors(workdir, capsys, argv, code, message):
+    try:
+        got = main(argv)
+    except SystemExit as exc:  # argparse's own errors
+        got = exc.code
+    err = capsys.readouterr().err
+    assert got == code
+    assert message in err
+    assert "Traceback" not in err
+
+
+def test_estimate_refuses_a_model_of_another_machine(workdir, capsys):
+    other = ThermalModel(axes=("z",), factors=("spindle_power",), units={}, reference={}, paths={})
+    from gateway.model import save_model
+
+    save_model(other, "other.toml")
+    assert main(["estimate", "--profile", "lathe.toml", "--model", "other.toml", "val.csv"]) == 5
+    assert ('other.toml: factor "spindle_power" is not in profile lathe.toml (its factors: speed, i_sq)'
+            in capsys.readouterr().err)
+
+
+def test_console_script_exits_without_traceback(workdir):
+    bad = Path("bad.csv")
+    bad.write_text("time_s,speed,i_sq,x_um,z_um\n60,0,0,0,0\n120,0,zero,0,0\n")
+    proc = subprocess.run([sys.executable, "-m", "gateway.cli", "estimate", "--profile", "lathe.toml",
+                           "--model", "nothing.toml", "bad.csv"], capture_output=True, text=True, check=False)
+    assert proc.returncode == 5
+    assert proc.stderr.strip() == ("cncgw: error: nothing.toml: model file not found; create it with `cncgw identify "
+                                   "--profile lathe.toml EXPERIMENTS... -o nothing.toml`")
