@@ -190,3 +190,14 @@ def test_paper_convolution_agrees_within_its_own_discretisation_error():
         if dt == 60.0:
             coarse = diff
     assert np.all(diff < coarse / 10)  # 20x finer steps: the paper's error shrinks ~linearly
+
+
+@pytest.mark.parametrize("delay_s", [0.0, 60.0, 150.0])
+def test_first_order_fast_path_equals_the_general_section(delay_s):
+    from gateway.model.discrete import Section, first_order_coefficients
+
+    term = FirstOrder(gain=1.0, tau_s=700.0)
+    sec = Section.from_state_space(*term.unit_state_space(), 60.0, delay_s)
+    num, den = first_order_coefficients(700.0, 60.0, delay_s)
+    np.testing.assert_allclose(num, sec.num, rtol=1e-13, atol=1e-16)
+    np.testing.assert_allclose(den, sec.den, rtol=1e-13)

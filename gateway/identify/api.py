@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from gateway import __version__
 from gateway.errors import IdentificationError
@@ -57,6 +58,28 @@ def identify(
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}. Got {method!r}")
+    # the matrices here are small (thousands x tens): BLAS threads only contend for the cores, and on a
+    # busy 2-core edge PC that made identification 4-5x slower
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _identify(recordings, factors=factors, axes=axes, units=units, machine=machine, method=method,
+                         candidates=candidates, prune=prune, gap_policy=gap_policy, paper_max_iter=paper_max_iter,
+                         progress=progress)
+
+
+def _identify(
+    recordings: Sequence[Recording],
+    *,
+    factors: Sequence[str],
+    axes: Sequence[str],
+    units: Mapping[str, str] | None,
+    machine: str,
+    method: str,
+    candidates: Sequence[str],
+    prune: bool,
+    gap_policy: str,
+    paper_max_iter: int,
+    progress: Callable[[str], None] | None,
+) -> IdentifyResult:
     t0 = time.perf_counter()
     notes: list[str] = []
     preps = []

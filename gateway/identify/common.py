@@ -11,9 +11,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.signal
 
 from gateway.errors import IdentificationError
-from gateway.model.discrete import Section
+from gateway.model.discrete import Section, first_order_coefficients
 from gateway.model.terms import FirstOrder, SecondOrder, Term
 from gateway.prepare import Prepared
 
@@ -97,7 +98,7 @@ class Bounds:
 
     @classmethod
     def for_data(cls, dt_s: float, longest_s: float) -> Bounds:
-        return cls(log_tau_min=math.log(0.25 * dt_s), log_tau_max=math.log(3.0 * max(longest_s, dt_s)))
+        return cls(log_tau_min=math.log(0.25 * dt_s), log_tau_max=math.log(1.0 * max(longest_s, dt_s)))
 
     def of(self, structure: str) -> tuple[list[float], list[float]]:
         span = self.log_tau_max - self.log_tau_min
@@ -144,7 +145,26 @@ def theta_from_time_constants(structure: str, taus: Sequence[float], bounds: Bou
 
 def unit_responses(structure: str, theta: Sequence[float], du: np.ndarray, dt_s: float,
                    delay_s: float = 0.0) -> list[np.ndarray]:
-    """Responses of each unit-gain term of the structure to ``du`` (E, N): the regressors of its gains."""
+    """Responses of each unit-gain term of the structure to ``du`` (E, N): the regressors of its gains.
+
+    Fast paths, same numbers as :class:`~gateway.model.discrete.Section`: a first-order term is filtered
+    with its closed-form coefficients, and a second order with distinct real poles is split into partial
+    fractions, 1/((t1 s+1)(t2 s+1)) = (t2/(t2 s+1) - t1/(t1 s+1)) / (t2 - t1), exact because the ZOH
+    discretisation is linear in the transfer function.
+    """
+    def first(tau: float) -> np.ndarray:
+        num, den = first_order_coefficients(tau, dt_s, delay_s)
+        return scipy.signal.lfilter(num, den, du, axis=-1)
+
+    if structure == "first_order":
+        return [first(math.exp(theta[0]))]
+    if structure == "two_modes":
+        slow = math.exp(theta[0])
+        return [first(slow * math.exp(-theta[1])), first(slow)]
+    if structure == "second_order" and theta[1] > 0.01:
+        slow = math.exp(theta[0])
+        fast = slow * math.exp(-theta[1])
+        return [(slow * first(slow) - fast * first(fast)) / (slow - fast)]
     out = []
     for term in unit_terms(structure, theta):
         A, B, C = term.unit_state_space()

@@ -25,6 +25,27 @@ import scipy.linalg
 import scipy.signal
 
 
+def split_delay(delay_s: float, dt_s: float) -> tuple[int, float]:
+    """A dead time as (whole windows m, fraction f of a window in seconds), 0 <= f < dt."""
+    m = math.floor(delay_s / dt_s + 1e-12)
+    f = delay_s - m * dt_s
+    return m, (0.0 if f < 1e-9 * dt_s else f)
+
+
+def first_order_coefficients(tau_s: float, dt_s: float, delay_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(num, den) in z^-1 of 1/(tau s + 1) under the exact ZOH with dead time.
+
+    The same numbers :meth:`Section.from_state_space` computes for a first-order term, without matrices.
+    """
+    m, f = split_delay(delay_s, dt_s)
+    a = math.exp(-dt_s / tau_s)
+    b0 = 1.0 - math.exp(-(dt_s - f) / tau_s) if f else 1.0 - a
+    b1 = (1.0 - a) - b0
+    num = np.zeros(m + 2)
+    num[m], num[m + 1] = b0, b1
+    return num, np.array([1.0, -a])
+
+
 def _gamma(A: np.ndarray, B: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
     """(e^{A t}, int_0^t e^{A s} ds B) from one matrix exponential of the augmented system."""
     n = A.shape[0]
@@ -59,10 +80,7 @@ class Section:
             raise ValueError(f"dt_s must be > 0. Got {dt_s!r}")
         if not delay_s >= 0:
             raise ValueError(f"delay_s must be >= 0. Got {delay_s!r}")
-        m = math.floor(delay_s / dt_s + 1e-12)
-        f = delay_s - m * dt_s
-        if f < 1e-9 * dt_s:
-            f = 0.0
+        m, f = split_delay(delay_s, dt_s)
         Ad, g_full = _gamma(A, B, dt_s)
         B0 = _gamma(A, B, dt_s - f)[1] if f else g_full
         B1 = g_full - B0

@@ -1,0 +1,187 @@
+"""Joint identification vs the paper's steepest descent, on the same experiments.
+
+    .venv/bin/python bench/identify.py [--plant synthetic|sim] [--noise-um 0.1] [--plot out.png]
+
+Prints, for each method: wall time, and on held-out validation runs (never used for fitting) the max
+|error| per axis and as % of the peak displacement. The headline figures are ratios measured in this run:
+paper wall time / joint wall time, and paper held-out max error / joint held-out max error.
+
+Plants:
+- ``synthetic``: a linear plant of HIGHER order than either method's model (three first-order modes per
+  path, mixed signs, time constants from minutes to ~10 h), driven by per-minute factor values of the
+  paper's 9 experiments (12 h each) and validated on the paper's two validation runs.
+- ``sim``: the bundled simulated machine (simulators/), effects off: the paper's identification scenarios
+  and validation runs recorded through the drive and thermal simulation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from gateway.estimate import estimate, plot_estimates
+from gateway.identify import identify
+from gateway.model import FirstOrder, PathTF, ThermalModel
+from gateway.profile import load_profile
+from gateway.synthetic import Segment, make_recording, schedule_inputs
+
+ROOT = Path(__file__).resolve().parent.parent
+PROFILE = ROOT / "profiles" / "sim-vmc.toml"
+
+# factor levels (window means) of steady operating states; idle: Z holds the head against gravity
+IDLE = {"z_i_sq": 16.0}
+SPINDLE = {
+    1000: {"spindle_speed": 1000.0, "spindle_i1_sq": 420.0, "spindle_i2_sq": 60.0},
+    500: {"spindle_speed": 500.0, "spindle_i1_sq": 390.0, "spindle_i2_sq": 25.0},
+    "alt": {"spindle_speed": 500.0, "spindle_i1_sq": 700.0, "spindle_i2_sq": 330.0},  # 400/600 alternating
+}
+
+
+def feed(axis: str, speed_mm_min: float, i_sq: float) -> dict[str, float]:
+    base = {f"{axis}_feed": speed_mm_min, f"{axis}_i_sq": i_sq}
+    if axis == "z":
+        base["z_i_sq"] = IDLE["z_i_sq"] + i_sq
+    return base
+
+
+def experiments() -> list[tuple[str, list[Segment]]]:
+    """The paper's 9 identification experiments: 30 min idle, 60 min on, idle to 12 h."""
+    def run(levels: dict[str, float]) -> list[Segment]:
+        return [Segment(minutes=30, levels={}), Segment(minutes=60, levels=levels), Segment(minutes=630, levels={})]
+
+    out = [(f"spindle-{k}", run(v)) for k, v in SPINDLE.items()]
+    for axis in "xyz":
+        out.append((f"{axis}-fast", run(feed(axis, 6000.0, 9.0))))
+        out.append((f"{axis}-short-strokes", run(feed(axis, 2000.0, 30.0))))
+    return out
+
+
+def validations() -> list[tuple[str, list[Segment]]]:
+    both_1 = {**SPINDLE[1000], **feed("x", 3600.0, 8.0), **feed("y", 4800.0, 10.0)}
+    both_2 = {**SPINDLE[500], **feed("x", 2800.0, 12.0), **feed("y", 2800.0, 12.0)}
+    return [
+        ("random-spindle", [Segment(minutes=30, levels={}), Segment(minutes=30, levels=SPINDLE[1000]),
+                            Segment(minutes=20, levels={}), Segment(minutes=20, levels=SPINDLE[500]),
+                            Segment(minutes=60, levels={}), Segment(minutes=30, levels=SPINDLE[500]),
+                            Segment(minutes=170, levels={})]),
+        ("spindle-and-feeds", [Segment(minutes=60, levels={}), Segment(minutes=60, levels=both_1),
+                               Segment(minutes=120, levels={}), Segment(minutes=90, levels=both_2),
+                               Segment(minutes=150, levels={})]),
+    ]
+
+
+def higher_order_plant(factors: tuple[str, ...], seed: int = 7) -> ThermalModel:
+    """Three modes per path, mixed signs; static gains sized so spindle 1000 rpm for 60 min gives ~12 um in z."""
+    rng = np.random.default_rng(seed)
+    typical = {"spindle_speed": 1000.0, "spindle_i1_sq": 420.0, "spindle_i2_sq": 330.0}
+    paths = []
+    for a in ("x", "y", "z"):
+        for f in factors:
+            own_axis = f.split("_")[0] in ("x", "y", "z")
+            if own_axis and f[0] != a and rng.random() < 0.5:
+                continue  # a feed axis heats mostly its own direction
+            scale = typical.get(f, 6000.0 if f.endswith("feed") else 30.0)
+            size_um = (6.0 if a == "z" else 2.5) * rng.uniform(0.4, 1.0) * (1 if rng.random() < 0.8 else -1)
+            taus = np.sort(np.exp(rng.uniform(np.log(300), np.log(36000), 3)))
+            weights = rng.dirichlet([2, 2, 2]) * np.where(rng.random(3) < 0.25, -0.5, 1.0)
+            weights /= weights.sum()
+            gain = size_um / scale
+            paths.append(PathTF(axis=a, factor=f, terms=tuple(
+                FirstOrder(gain=float(gain * w), tau_s=float(t)) for w, t in zip(weights, taus, strict=True))))
+    return ThermalModel(axes=("x", "y", "z"), factors=factors, units={}, reference={},
+                        paths={(p.axis, p.factor): p for p in paths})
+
+
+def synthetic_data(factors: tuple[str, ...], noise_um: float):
+    """(train, held-out, held-out noiseless truth) recordings of the higher-order plant."""
+    plant = higher_order_plant(factors)
+    idle = dict.fromkeys(factors, 0.0) | IDLE
+
+    def rec(name: str, segs: list[Segment], seed: int, noise: float):
+        return make_recording(plant, schedule_inputs(segs, factors, idle), name=name, noise_um=noise, seed=seed,
+                              zero_um={"x": 5.0, "y": -3.0, "z": 10.0})
+
+    train = [rec(n, s, k, noise_um) for k, (n, s) in enumerate(experiments())]
+    held = [rec(n, s, 100 + k, noise_um) for k, (n, s) in enumerate(validations())]
+    truth = [rec(n, s, 100 + k, 0.0) for k, (n, s) in enumerate(validations())]
+    return train, held, truth
+
+
+def sim_data(noise_um: float):
+    try:
+        from simulators.machine import bench_recordings  # provided by the simulated machine
+    except ImportError:
+        raise SystemExit("bench/identify.py: the simulated machine is not available yet; "
+                         "use --plant synthetic") from None
+    return bench_recordings(noise_um=noise_um)
+
+
+def worst(ests, axes, key: str) -> tuple[float, str]:
+    """Largest metric over runs and axes, and where it was."""
+    value, where = max((getattr(e.metrics[a], key), f"{Path(e.recording).stem} {a}") for e in ests for a in axes)
+    return value, where
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--plant", choices=("synthetic", "sim"), default="synthetic")
+    ap.add_argument("--noise-um", type=float, default=0.1)
+    ap.add_argument("--paper-max-iter", type=int, default=3000)
+    ap.add_argument("--plot", help="PNG of the held-out runs with the joint model")
+    args = ap.parse_args()
+
+    profile = load_profile(PROFILE)
+    factors, axes = profile.factor_names, profile.axes
+    train, held, truth = (synthetic_data(factors, args.noise_um) if args.plant == "synthetic"
+                          else sim_data(args.noise_um))
+    print(f"plant {args.plant}: {len(train)} identification experiments "
+          f"({sum(len(r) for r in train) / 60:.0f} h), {len(held)} held-out runs, noise {args.noise_um} um")
+
+    runs = {"joint": {}, "joint, 2nd order only": {"candidates": ("second_order",), "prune": False},
+            "paper": {"method": "paper", "paper_max_iter": args.paper_max_iter}}
+    results = {}
+    for name, kw in runs.items():
+        t0 = time.perf_counter()
+        res = identify(train, factors=factors, axes=axes, **kw)
+        wall = time.perf_counter() - t0
+        ests = [estimate(res.model, r) for r in held]
+        # against the noiseless truth: the error the model makes, without the sensor's noise
+        vs_truth = [estimate(res.model, r) for r in truth]
+        results[name] = (wall, ests, vs_truth)
+
+    print()
+    print(f"{'method':<22} {'wall s':>7}   held-out max |error| um, measured / true (% of peak)")
+    for name, (wall, ests, vs_truth) in results.items():
+        cells = []
+        for a in axes:
+            m = max((e.metrics[a] for e in ests), key=lambda m: m.max_abs_error_um)
+            t = max((e.metrics[a] for e in vs_truth), key=lambda m: m.max_abs_error_um)
+            cells.append(f"{a} {m.max_abs_error_um:5.2f} / {t.max_abs_error_um:5.2f} "
+                         f"({t.max_error_pct_of_peak:4.1f} %)")
+        print(f"{name:<22} {wall:>7.2f}   " + "   ".join(cells))
+    print()
+    w = {k: v[0] for k, v in results.items()}
+    err = {k: worst(v[2], axes, "max_abs_error_um") for k, v in results.items()}
+    pct = {k: worst(v[2], axes, "max_error_pct_of_peak") for k, v in results.items()}
+    pct_meas = {k: worst(v[1], axes, "max_error_pct_of_peak") for k, v in results.items()}
+    print(f"speed-up, paper wall / joint wall:                   {w['paper'] / w['joint']:6.1f} x  (aim >= 20 x)")
+    print(f"speed-up, paper wall / joint 2nd-order-only wall:    {w['paper'] / w['joint, 2nd order only']:6.1f} x  "
+          "(like for like: one structure, no selection; its accuracy shows what a wrong structure costs)")
+    print(f"held-out max error vs truth, paper / joint:          {err['paper'][0] / err['joint'][0]:6.2f}    (aim > 1)")
+    for k in results:
+        print(f"{k + ':':<22} worst held-out max error {pct[k][0]:5.1f} % of peak vs truth ({pct[k][1]}), "
+              f"{pct_meas[k][0]:5.1f} % vs measured ({pct_meas[k][1]})   (aim <= 10 %)")
+    if args.plot:
+        plot_estimates(results["joint"][1], args.plot, title=f"held-out runs, joint model ({args.plant} plant)")
+        print(f"wrote {args.plot}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
