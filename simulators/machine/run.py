@@ -12,6 +12,7 @@ The gateway's commands never read the truth file.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -28,18 +29,24 @@ from simulators.machine.thermal import ThermalModel, room_deviation
 _NOISE_BLOCK = 4096
 
 
+@lru_cache(maxsize=32)
+def _noise_block(seed: int, stream: int, block: int) -> np.ndarray:
+    draw = np.random.default_rng([seed, stream, block]).standard_normal((_NOISE_BLOCK, 3))
+    draw.flags.writeable = False
+    return draw
+
+
 def sensor_noise(seed: int, stream: int, rows: np.ndarray) -> np.ndarray:
     """Standard normal noise (rows x 3) for window boundaries ``rows``.
 
-    The same value for the same
-    boundary whichever way it is asked for (offline in one go, live one at a time).
+    The same value for the same boundary whichever way it is asked for (offline in one go, live one at
+    a time): blocks of boundaries are drawn from generators seeded by (seed, stream, block).
     """
     rows = np.asarray(rows, dtype=np.int64)
     out = np.empty((len(rows), 3))
     for block in np.unique(rows // _NOISE_BLOCK):
-        draw = np.random.default_rng([seed, stream, int(block)]).standard_normal((_NOISE_BLOCK, 3))
         sel = rows // _NOISE_BLOCK == block
-        out[sel] = draw[rows[sel] % _NOISE_BLOCK]
+        out[sel] = _noise_block(seed, stream, int(block))[rows[sel] % _NOISE_BLOCK]
     return out
 
 
