@@ -153,7 +153,7 @@ class LiveMachine:
         return self._model.net.S @ (self._state(t) - self._model.T0)
 
     def _measured(self, t: float) -> np.ndarray:
-        row = int(round(t / self.machine.window_s))  # noise is drawn per measurement, at the boundaries
+        row = round(t / self.machine.window_s)  # noise is drawn per measurement, at the boundaries
         if row != self._noise_row:
             self._noise_row = row
             self._noise = self.scenario.noise_um * sensor_noise(self.scenario.seed, 0, np.array([row]))[0]
