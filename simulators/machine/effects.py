@@ -206,5 +206,13 @@ def describe_effects() -> str:
         lines.append(f"[effects.{name}]  {(cls.__doc__ or '').split(chr(10))[0]}")
         for f in dataclasses.fields(cls):
             note = f.metadata.get("help", "")
-            lines.append(f"  {f.name} = {f.default!r}" + (f"  # {note}" if note else ""))
+            lines.append(f"  {f.name} = {_toml(f.default)}" + (f"  # {note}" if note else ""))
     return "\n".join(lines)
+
+
+def _toml(value: Any) -> str:
+    if isinstance(value, tuple):
+        return "{ " + ", ".join(f"{a} = {v!r}" for a, v in zip(AXES, value, strict=True)) + " }"
+    if isinstance(value, str):
+        return f'"{value}"'
+    return repr(value)

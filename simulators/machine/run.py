@@ -117,7 +117,9 @@ def window_stats(drives: DriveTimeline, n_windows: int, *, progress: bool = Fals
     """Statistics of windows ``0..n_windows-1`` (rows) from the drives' 2 ms samples."""
     n = drives.machine.samples_per_window
     rows = []
-    for w in tqdm(range(n_windows), disable=not progress, unit="min", desc=desc, leave=False, mininterval=0.5):
+    # progress: a bar on a terminal only (disable=None), never in tests or logs
+    for w in tqdm(range(n_windows), disable=None if progress else True, unit="min", desc=desc, leave=False,
+                  mininterval=0.5):
         rows.append(drives.window_stats(w * n + 1, (w + 1) * n, fast=fast))
     return np.array(rows)
 

@@ -175,11 +175,12 @@ def parse_scenario(doc: TomlDoc, *, machine: MachineParams = DEFAULT_MACHINE) ->
         root.problem("segments", "no schedule: expected [segments.NAME] tables or [scenario] duration_h")
 
     effects = _parse_effects(root, machine)
-    duration_s = t if duration_h is None else duration_h * 3600.0
+    window = machine.window_s
+    # without an explicit length the run ends at rest at the next whole window
+    duration_s = math.ceil(t / window - 1e-9) * window if duration_h is None else duration_h * 3600.0
     if duration_h is not None and duration_s + 1e-9 < t:
         doc.problem(("scenario", "duration_h"),
                     f"expected at least the schedule's {t / 3600.0:g} h (idle + segments), got {duration_h!r}")
-    window = machine.window_s
     if duration_s < window or abs(duration_s / window - round(duration_s / window)) > 1e-9:
         where = ("scenario", "duration_h") if duration_h is not None else ("segments",)
         doc.problem(where, f"expected a run of whole {window:g} s windows (at least one), got "
