@@ -75,11 +75,11 @@ class Cabinet:
     back of the column.
     """
 
-    w_per_a2: float = field(default=0.15,
+    w_per_a2: float = field(default=0.3,
                             metadata=_m(min=0.0, max=100.0, help="amplifier loss per A^2 of motor current"))
     capacity_kj_per_k: float = field(default=60.0, metadata=_m(min=0.0, min_exclusive=True, max=1e5))
     room_w_per_k: float = field(default=15.0, metadata=_m(min=0.0, max=1e4, help="heat exchanger and walls"))
-    column_w_per_k: float = field(default=3.0, metadata=_m(min=0.0, min_exclusive=True, max=1e4))
+    column_w_per_k: float = field(default=6.0, metadata=_m(min=0.0, min_exclusive=True, max=1e4))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -90,7 +90,7 @@ class BearingPreload:
     bearing friction heat rises with it (a nonlinear feedback).
     """
 
-    gain_per_k: float = field(default=0.04, metadata=_m(min=0.0, max=1.0,
+    gain_per_k: float = field(default=0.01, metadata=_m(min=0.0, max=1.0,
                            help="extra friction heat per kelvin of bearing-over-head temperature"))
 
 

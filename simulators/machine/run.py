@@ -29,6 +29,12 @@ from simulators.machine.thermal import ThermalModel, room_deviation
 _NOISE_BLOCK = 4096
 
 
+class _Progress(tqdm):
+    """A progress bar without tqdm's monitor thread (nothing left running after a run)."""
+
+    monitor_interval = 0
+
+
 @lru_cache(maxsize=32)
 def _noise_block(seed: int, stream: int, block: int) -> np.ndarray:
     draw = np.random.default_rng([seed, stream, block]).standard_normal((_NOISE_BLOCK, 3))
@@ -118,8 +124,9 @@ def window_stats(drives: DriveTimeline, n_windows: int, *, progress: bool = Fals
     n = drives.machine.samples_per_window
     rows = []
     # progress: a bar on a terminal only (disable=None), never in tests or logs
-    for w in tqdm(range(n_windows), disable=None if progress else True, unit="min", desc=desc, leave=False,
-                  mininterval=0.5):
+    windows = _Progress(range(n_windows), disable=None, unit="min", desc=desc, leave=False,
+                        mininterval=0.5) if progress else range(n_windows)
+    for w in windows:
         rows.append(drives.window_stats(w * n + 1, (w + 1) * n, fast=fast))
     return np.array(rows)
 
@@ -145,11 +152,10 @@ def simulate(scenario: Scenario, *, machine: MachineParams = DEFAULT_MACHINE, pr
     time_s = dt * np.arange(1, n_windows + 1)
     drives = compile_drives(scenario, machine)
     stats = window_stats(drives, n_windows, progress=progress, fast=fast, desc=scenario.name)
-    room_dev = room_deviation(scenario.effects, time_s - dt, time_s)
 
     def displacement(effects: Effects) -> tuple[ThermalModel, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         model = ThermalModel(machine, effects)
-        T, extra = thermal_run(model, stats, room_dev)
+        T, extra = thermal_run(model, stats, room_deviation(effects, time_s - dt, time_s))
         return model, T, (T - model.T0) @ model.net.S.T, extra
 
     model, T, true_um, extra = displacement(scenario.effects)
