@@ -47,7 +47,8 @@ def test_paper_magnitudes():
     spindle = bundled("spindle-1000rpm").peak_um()
     assert spindle["z"] < 0  # the head and spindle nose grow down towards the table
     assert 8.0 <= abs(spindle["z"]) <= 18.0  # paper: several um to ~15 um
-    assert abs(spindle["y"]) < abs(spindle["z"]) and abs(spindle["x"]) < abs(spindle["y"])
+    assert abs(spindle["y"]) < abs(spindle["z"])
+    assert abs(spindle["x"]) < abs(spindle["y"])
     random_run = bundled("random-spindle").peak_um()
     assert abs(random_run["z"]) == pytest.approx(12.9, abs=2.0)  # paper: 12.9 um
     with_feeds = bundled("spindle-feeds").peak_um()
@@ -72,7 +73,8 @@ def test_network_has_the_nodes_and_time_constants_the_docs_claim():
     tau_min = np.sort(1.0 / np.linalg.eigvals(net.K / net.C[:, None]).real) / 60.0
     assert 1.0 < tau_min[0] < 10.0  # minutes
     assert tau_min[-1] > 5 * 60.0  # hours
-    assert np.all(np.abs(net.S).sum(axis=0) >= 0) and np.abs(net.S[Z]).sum() > 0
+    assert np.count_nonzero(net.S[Z] > 0) >= 2  # mixed signs: the column lifts what the head lowers
+    assert np.count_nonzero(net.S[Z] < 0) >= 2
 
 
 def test_window_integration_is_exact_for_constant_heat():
@@ -169,7 +171,8 @@ def test_bearing_preload_feeds_back_on_friction_heat():
     friction = r.heat_w["spindle_friction"][k]
     dT = T[r.node_names.index("bearing")] - T[r.node_names.index("head")]
     assert r.heat_w["bearing_preload"][k] == pytest.approx(friction * 0.01 * dT, rel=1e-12)
-    assert dT > 5.0 and sp.front_bearing_share > 0
+    assert dT > 5.0
+    assert 0 < sp.front_bearing_share < 1
     assert r.contributions_um["bearing_preload"][row(90), Z] < -0.5
 
 
