@@ -93,6 +93,13 @@ def test_schedule_longer_than_the_run_and_partial_windows(tmp_path: Path):
     assert sc.segments[0].end_s == 150.0
 
 
+def test_strokes_stay_within_the_travel_without_follow_up_errors():
+    with pytest.raises(SimulationError) as err:
+        parse_scenario_text("[segments.a]\nminutes = 5\nstroke_mm = { y = 500 }\nfeed_mm_min = 1000\n")
+    assert str(err.value) == ("<scenario>:3: segments.a.stroke_mm.y: expected a stroke in mm within the Y travel "
+                              "of 410 mm (either way), got 500 (an integer)")
+
+
 def test_unknown_bundled_name_suggests_the_closest():
     with pytest.raises(SimulationError, match=r'no scenario "spindle-100rpm": .* \(did you mean "spindle-1000rpm"\?\)'):
         load_scenario("spindle-100rpm")

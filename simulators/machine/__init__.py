@@ -10,27 +10,23 @@ Public API (see simulators/live.py for the contract with the device servers):
 - :class:`MachineParams` / :data:`DEFAULT_MACHINE`: every physical parameter, with its source.
 """
 
-from simulators.machine.drives import CHANNELS, FACTORS
-from simulators.machine.effects import EFFECTS, Effects
-from simulators.machine.live import LiveMachine
-from simulators.machine.params import DEFAULT_MACHINE, MachineParams
-from simulators.machine.run import SimulationResult, simulate, write_run
-from simulators.machine.scenario import Scenario, Segment, bundled_scenarios, load_scenario, parse_scenario_text
+from __future__ import annotations
 
-__all__ = [
-    "CHANNELS",
-    "DEFAULT_MACHINE",
-    "EFFECTS",
-    "FACTORS",
-    "Effects",
-    "LiveMachine",
-    "MachineParams",
-    "Scenario",
-    "Segment",
-    "SimulationResult",
-    "bundled_scenarios",
-    "load_scenario",
-    "parse_scenario_text",
-    "simulate",
-    "write_run",
-]
+import importlib
+from typing import Any
+
+# name -> module; imported on first use so that ``cncgw --help`` does not load scipy
+_EXPORTS = {
+    "CHANNELS": "drives", "FACTORS": "drives", "EFFECTS": "effects", "Effects": "effects",
+    "LiveMachine": "live", "DEFAULT_MACHINE": "params", "MachineParams": "params",
+    "SimulationResult": "run", "simulate": "run", "write_run": "run", "Scenario": "scenario",
+    "Segment": "scenario", "bundled_scenarios": "scenario", "load_scenario": "scenario",
+    "parse_scenario_text": "scenario",
+}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'simulators.machine' has no attribute {name!r}")
+    return getattr(importlib.import_module(f"simulators.machine.{_EXPORTS[name]}"), name)

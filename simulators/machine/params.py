@@ -107,6 +107,8 @@ class FeedAxisParams:
     vertical: bool = False
     max_feed_mm_min: float = 30000.0
     max_accel_m_s2: float = 5.0
+    #: stroke of the axis (VM40III class: X 760, Y 410, Z 460 mm)
+    travel_mm: float = 760.0
     #: the node the guide friction heats (the carriage side of the guides)
     guide_node: str = ""
 
@@ -133,10 +135,11 @@ class FeedAxisParams:
 def _axes() -> MappingProxyType[str, FeedAxisParams]:
     return MappingProxyType({
         "x": FeedAxisParams(name="x", mass_kg=450.0, guide_node="table"),
-        "y": FeedAxisParams(name="y", mass_kg=800.0, rotor_inertia_kg_m2=0.0036, guide_node="saddle"),
+        "y": FeedAxisParams(name="y", mass_kg=800.0, rotor_inertia_kg_m2=0.0036, guide_node="saddle",
+                            travel_mm=410.0),
         # head + spindle + motor 350 kg, no counterbalance: 5.5 Nm holding torque, 3.6 A
         "z": FeedAxisParams(name="z", mass_kg=350.0, torque_constant_nm_per_a=1.5, vertical=True,
-                            max_feed_mm_min=24000.0, guide_node="column_front"),
+                            max_feed_mm_min=24000.0, guide_node="column_front", travel_mm=460.0),
     })
 
 

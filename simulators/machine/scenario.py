@@ -216,13 +216,18 @@ def _parse_segment(name: str, t: Table, start_s: float, machine: MachineParams) 
     sp = machine.spindle
     speeds, rate = _parse_speeds(t, sp.max_speed_rpm)
     stroke = (0.0, 0.0, 0.0)
+    bad_stroke = False
     stroke_t = t.table("stroke_mm", expected="a table of axes such as { x = 120, y = 160 }")
     if stroke_t is not None:
-        stroke = tuple(stroke_t.float(a, default=0.0, min=-2000.0, max=2000.0) or 0.0 for a in AXES)
+        values = [stroke_t.float(a, default=0.0, min=-machine.axes[a].travel_mm, max=machine.axes[a].travel_mm,
+                                 expected=f"a stroke in mm within the {a.upper()} travel of "
+                                          f"{machine.axes[a].travel_mm:g} mm (either way)") for a in AXES]
         stroke_t.done()
-        if not any(stroke):
+        bad_stroke = any(v is None for v in values)
+        stroke = tuple(v or 0.0 for v in values)
+        if not bad_stroke and not any(stroke):
             t.problem("stroke_mm", "expected a non-zero stroke on at least one axis, got all zero")
-    moving = any(stroke)
+    moving = any(stroke) or bad_stroke
     feed = t.float("feed_mm_min", default=None if moving else 0.0, min=0.0, min_exclusive=True, max=1e5)
     accel = t.float("accel_m_s2", default=0.0, min=0.0, min_exclusive=True, max=100.0)
     dwell = t.float("dwell_s", default=0.0, min=0.0, max=3600.0)
@@ -231,7 +236,7 @@ def _parse_segment(name: str, t: Table, start_s: float, machine: MachineParams) 
             if key in t:
                 t.problem(key, "given without stroke_mm: expected stroke_mm = { x = ..., ... } as well")
     t.done()
-    if minutes is None or speeds is None or (moving and (feed is None or accel is None or dwell is None)):
+    if minutes is None or speeds is None or bad_stroke or (moving and (feed is None or accel is None or dwell is None)):
         return None
     accel_value = accel or 0.0
     if moving:
