@@ -159,5 +159,5 @@ class LiveMachine:
             self._noise = self.scenario.noise_um * sensor_noise(self.scenario.seed, 0, np.array([row]))[0]
         out = self._true(t) + self._noise
         if self.scenario.effects.sensor_artefacts is not None:
-            out += artefacts(self.scenario, np.array([t]))[0]
+            out += artefacts(self.scenario, np.array([t]), self.machine.window_s)[0]
         return out

@@ -56,8 +56,8 @@ def sensor_noise(seed: int, stream: int, rows: np.ndarray) -> np.ndarray:
     return out
 
 
-def artefacts(scenario: Scenario, t_s: np.ndarray) -> np.ndarray:
-    """What the sensor artefacts add at the boundaries ``t_s`` (rows x 3, um)."""
+def artefacts(scenario: Scenario, t_s: np.ndarray, window_s: float) -> np.ndarray:
+    """What the sensor artefacts add at times ``t_s`` (rows x 3, um); their noise is drawn per window."""
     sa = scenario.effects.sensor_artefacts
     out = np.zeros((len(t_s), 3))
     if sa is None:
@@ -65,7 +65,7 @@ def artefacts(scenario: Scenario, t_s: np.ndarray) -> np.ndarray:
     out += np.outer(t_s >= sa.step_at_h * 3600.0, sa.step_um)
     out += np.outer(t_s / 3600.0, sa.drift_um_per_h)
     if sa.noise_um > 0:
-        out += sa.noise_um * sensor_noise(scenario.seed, 1, np.rint(t_s / 60.0).astype(np.int64))
+        out += sa.noise_um * sensor_noise(scenario.seed, 1, np.rint(t_s / window_s).astype(np.int64))
     return out
 
 
@@ -161,7 +161,7 @@ def simulate(scenario: Scenario, *, machine: MachineParams = DEFAULT_MACHINE, pr
     model, T, true_um, extra = displacement(scenario.effects)
     contributions = {name: true_um - displacement(scenario.effects.without(name))[2]
                      for name in scenario.effects.enabled if name != "sensor_artefacts"}
-    artefact_um = artefacts(scenario, time_s)
+    artefact_um = artefacts(scenario, time_s, dt)
     if scenario.effects.sensor_artefacts is not None:
         contributions["sensor_artefacts"] = artefact_um
     noise = scenario.noise_um * sensor_noise(scenario.seed, 0, np.arange(1, n_windows + 1))
