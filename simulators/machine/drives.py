@@ -8,10 +8,10 @@ vectorised, never with a Python loop per 2 ms step:
   commands the speed is one of: an exponential approach to the command (linear region: the controller's
   torque ``J (w_c - w) / tau`` plus the friction it feeds forward), a torque-limited ramp below base speed
   (``J dw/dt = +-T_max - T_c - b w``: exponential with the long time constant J/b), a current-limited
-  ramp above base speed (constant power: ``w^2`` linear in time; friction, < 2 % of the torque there,
-  is left out of that ramp only), or off (a zero command has brought the speed below 1 rpm and the drive
-  is disabled: no current). The compiler walks the commands once and stores each piece's start time and
-  constants.
+  ramp above base speed (constant power ``P``: ``J w dw/dt = +-P - T_c w - b w^2``, whose time as a
+  function of speed has a closed form, inverted by a few Newton steps), or off (a zero command has brought
+  the speed below 1 rpm and the drive is disabled: no current). The compiler walks the commands once and
+  stores each piece's start time and constants. A test checks all four against a brute-force integration.
 - Feed axes (trapezoidal moves): every piece has constant acceleration, so ``v = v0 + a (t - t0)``; the
   Coulomb friction's sign is the piece's direction of motion (kinetic friction from the first instant of a
   move), so a sample on a piece boundary is never ambiguous.
@@ -49,8 +49,8 @@ _SETTLED = 1e-14  # a linear piece whose transient has decayed below this fracti
 class SpindleTimeline:
     """The spindle's motion as pieces.
 
-    ``t0`` (s), ``kind``, start speed ``w0`` and ``wt`` (the command
-    on a linear piece, the asymptote on a torque-limited one), ``sign`` (+1 accelerating, -1 braking).
+    Per piece: start ``t0`` (s), ``kind``, start speed ``w0`` and ``wt`` (the command on a linear piece, the
+    asymptote on a torque-limited one), ``sign`` (+1 accelerating, -1 braking).
     """
 
     params: SpindleParams
@@ -138,8 +138,7 @@ def _advance(p: SpindleParams, w: float, wc: float, t: float, t_end: float,
              out: list[tuple[float, int, float, float, float]]) -> float:
     """Append the pieces from ``t`` to ``t_end`` at command ``wc`` starting at speed ``w``.
 
-    Return the
-    speed at ``t_end``.
+    Returns the speed at ``t_end``.
     """
     J, tau, b, Tc, Tm = p.inertia_kg_m2, p.time_constant_s, p.viscous_nm_s, p.coulomb_nm, p.torque_limit_nm
     w_off = p.off_below_rpm * RAD_PER_RPM
@@ -166,7 +165,7 @@ def _advance(p: SpindleParams, w: float, wc: float, t: float, t_end: float,
             else:  # torque-limited braking (friction helps)
                 ramp = (SAT_TORQUE, (J * wc / tau + Tc + Tm) / k_lin, -(Tm + Tc) / b, -1.0)
         if ramp is None or (ramp[1] - w) * ramp[3] <= 0.0:
-            # linear region (also when the friction-free power criterion already says so)
+            # linear region (also when a ramp would end where it starts: the limit is not reached)
             out.append((t, LIN, w, wc, 0.0))
             if wc == 0.0:  # the drive switches off when the speed falls below w_off
                 t_off = t + tau * math.log(w / w_off)
@@ -191,9 +190,8 @@ def _advance(p: SpindleParams, w: float, wc: float, t: float, t_end: float,
 def _power_time(p: SpindleParams, w: np.ndarray, sign: float | np.ndarray) -> np.ndarray:
     """Time (s, up to a constant) at which a constant-power ramp with friction passes speed ``w``.
 
-    ``J w dw/dt = s P - T_c w - b w^2``, so ``t(w) = -J * integral w / Q(w) dw`` with
-    ``Q = b w^2 + T_c w - s P``: a logarithm plus a log or arctan term depending on the sign of
-    ``T_c^2 + 4 b s P``.
+    ``J w dw/dt = s P - T_c w - b w^2``, so ``t(w) = -J * integral w / Q(w) dw`` with ``Q = b w^2 + T_c w -
+    s P``: a logarithm plus a log or arctan term depending on the sign of ``T_c^2 + 4 b s P``.
     """
     J, b, Tc, P = p.inertia_kg_m2, p.viscous_nm_s, p.coulomb_nm, p.power_limit_w
     sign = np.asarray(sign, dtype=float)
@@ -210,9 +208,8 @@ def _power_time(p: SpindleParams, w: np.ndarray, sign: float | np.ndarray) -> np
 def _power_speed(p: SpindleParams, w0: np.ndarray, sign: np.ndarray, dt: np.ndarray) -> np.ndarray:
     """Speed ``dt`` after the start of a constant-power ramp from ``w0``.
 
-    Newton on ``t(w)``, started
-    from the friction-free solution (``w^2`` linear in time); converges to machine precision in a few
-    steps because friction is a few per cent of the torque there.
+    Newton on ``t(w)``, started from the friction-free solution (``w^2`` linear in time); it converges in a
+    few steps because friction is a few per cent of the torque there.
     """
     J, b, Tc, P = p.inertia_kg_m2, p.viscous_nm_s, p.coulomb_nm, p.power_limit_w
     target = _power_time(p, w0, sign) + dt
@@ -228,8 +225,8 @@ def _power_speed(p: SpindleParams, w0: np.ndarray, sign: np.ndarray, dt: np.ndar
 class AxisTimeline:
     """One feed axis as constant-acceleration pieces.
 
-    Start ``t0`` (s), velocity ``v0`` (m/s),
-    acceleration ``a`` (m/s^2) and direction of motion ``direction`` (+1, -1, 0 at rest).
+    Per piece: start ``t0`` (s), velocity ``v0`` (m/s), acceleration ``a`` (m/s^2) and direction of motion
+    ``direction`` (+1, -1, 0 at rest).
     """
 
     params: FeedAxisParams
@@ -284,8 +281,8 @@ class AxisTimeline:
 def _piece_index(t0: np.ndarray, t: np.ndarray, i0: int, i1: int) -> np.ndarray:
     """Piece of every sample time ``t`` (sorted), given that pieces ``i0..i1-1`` cover them.
 
-    The last
-    piece starting at or before each sample (the same rule as ``searchsorted(..., side="right") - 1``).
+    The last piece starting at or before each sample (the same rule as ``searchsorted(..., side="right") -
+    1``).
     """
     if i1 - i0 == 1:
         return np.full(len(t), i0)

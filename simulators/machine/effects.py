@@ -30,8 +30,8 @@ Vec3 = tuple[float, float, float]
 class RoomCycle:
     """The workshop's air temperature.
 
-    A daily sine plus a linear drift, acting on every node through its
-    conductance to the room (the machine starts in the cycle's periodic steady state).
+    A daily sine plus a linear drift, acting on every node through its conductance to the room (the machine
+    starts in the cycle's periodic steady state).
     """
 
     amplitude_k: float = field(default=1.5, metadata=_m(min=0.0, max=20.0, help="half the daily peak-to-peak swing"))
@@ -54,8 +54,8 @@ class EddyLoss:
 class SlowPath:
     """A very slow thermal path.
 
-    A massive part (column base, the concrete under the machine) that soaks
-    up heat from ``from_node`` over many hours and moves the tool while it does.
+    A massive part (column base, the concrete under the machine) that soaks up heat from ``from_node`` over
+    many hours and moves the tool while it does.
     """
 
     from_node: str = field(default="head", metadata=_m(help="the node it draws heat from"))
@@ -71,8 +71,7 @@ class SlowPath:
 class Cabinet:
     """Control cabinet and servo amplifiers.
 
-    Losses ~ the sum of the motor currents squared, bolted to the
-    back of the column.
+    Losses ~ the sum of the motor currents squared, bolted to the back of the column.
     """
 
     w_per_a2: float = field(default=0.3,
@@ -86,8 +85,8 @@ class Cabinet:
 class BearingPreload:
     """Thermal preload.
 
-    The shaft and inner rings run hotter than the housing, the preload grows and the
-    bearing friction heat rises with it (a nonlinear feedback).
+    The shaft and inner rings run hotter than the housing, the preload grows and the bearing friction heat
+    rises with it (a nonlinear feedback).
     """
 
     gain_per_k: float = field(default=0.01, metadata=_m(min=0.0, max=1.0,
@@ -98,8 +97,8 @@ class BearingPreload:
 class CoolantDelay:
     """A coolant loop.
 
-    The stator jacket hands ``fraction`` of the motor's heat to oil that reaches a tank
-    on the back of the column after ``delay_s`` of transport.
+    The stator jacket hands ``fraction`` of the motor's heat to oil that reaches a tank on the back of the
+    column after ``delay_s`` of transport.
     """
 
     fraction: float = field(default=0.5, metadata=_m(min=0.0, max=1.0))
@@ -114,8 +113,8 @@ class CoolantDelay:
 class Chiller:
     """A coolant chiller that runs with the spindle.
 
-    A conductance from ``node`` to oil held at room
-    temperature, switched by the spindle and building up with the chiller's own time constant.
+    A conductance from ``node`` to oil held at room temperature, switched by the spindle and building up
+    with the chiller's own time constant.
     """
 
     node: str = field(default="stator", metadata=_m())
@@ -127,8 +126,8 @@ class Chiller:
 class SensorArtefacts:
     """What the displacement sensors add.
 
-    A step at one moment (a knock, a re-zeroing), a linear drift
-    (the sensor's own temperature) and extra white noise.
+    A step at one moment (a knock, a re-zeroing), a linear drift (the sensor's own temperature) and extra
+    white noise.
     """
 
     step_at_h: float = field(default=6.0, metadata=_m(min=0.0))

@@ -30,11 +30,11 @@ G_M_S2 = 9.81
 class SpindleParams:
     """Induction spindle motor (7.5 kW continuous / 11 kW 30 min class) and its speed loop.
 
-    Field-oriented control: the stator current has a magnetising component ``magnetising_a`` (constant up
-    to base speed, falling as base/n above it: field weakening) and a torque component
-    ``iq = torque / k_T(n)`` with ``k_T`` falling with the flux. The rotor current (referred to the
-    stator) is ``rotor_ratio * |iq|`` (Lm/Lr): it carries torque only, so it is near zero at constant speed
-    and large while accelerating. Currents are RMS phase values, as a drive's current monitor gives them.
+    Field-oriented control: the stator current has a magnetising component ``magnetising_a`` (constant up to
+    base speed, falling as base/n above it: field weakening) and a torque component ``iq = torque / k_T(n)``
+    with ``k_T`` falling with the flux. The rotor current (referred to the stator) is ``rotor_ratio * |iq|``
+    (Lm/Lr): it carries torque only, so it is near zero at constant speed and large while accelerating.
+    Currents are RMS phase values, as a drive's current monitor gives them.
     """
 
     #: motor rotor 0.05 + spindle, coupling and tool holder 0.03 kg m^2 (7.5 kW 4-pole catalogue motors
@@ -145,10 +145,10 @@ def _axes() -> MappingProxyType[str, FeedAxisParams]:
 
 @dataclass(frozen=True, kw_only=True)
 class Node:
-    """A lumped thermal mass. ``capacity_j_per_k`` = mass x specific heat.
+    """A lumped thermal mass.
 
-    ``room_w_per_k`` its loss to
-    the room; ``um_per_k`` its temperature rise's share of the tool-to-table displacement (x, y, z).
+    ``capacity_j_per_k`` is mass x specific heat, ``room_w_per_k`` its loss to the room, ``um_per_k`` its
+    temperature rise's share of the tool-to-table displacement (x, y, z).
     """
 
     name: str

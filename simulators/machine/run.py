@@ -45,8 +45,8 @@ def _noise_block(seed: int, stream: int, block: int) -> np.ndarray:
 def sensor_noise(seed: int, stream: int, rows: np.ndarray) -> np.ndarray:
     """Standard normal noise (rows x 3) for window boundaries ``rows``.
 
-    The same value for the same boundary whichever way it is asked for (offline in one go, live one at
-    a time): blocks of boundaries are drawn from generators seeded by (seed, stream, block).
+    The same value for the same boundary whichever way it is asked for (offline in one go, live one at a
+    time): blocks of boundaries are drawn from generators seeded by (seed, stream, block).
     """
     rows = np.asarray(rows, dtype=np.int64)
     out = np.empty((len(rows), 3))

@@ -124,8 +124,7 @@ def scenario_path(name_or_path: str | Path) -> Path:
 def load_scenario(name_or_path: str | Path, *, machine: MachineParams = DEFAULT_MACHINE) -> Scenario:
     """Read and check a scenario named by path or bundled name.
 
-    Raise :class:`SimulationError` listing
-    every problem.
+    Raise :class:`SimulationError` listing every problem.
     """
     path = scenario_path(name_or_path)
     return parse_scenario(TomlDoc(path, error=SimulationError), machine=machine)

@@ -39,8 +39,8 @@ def spindle_commands(scenario: Scenario) -> tuple[list[float], list[float]]:
 def _move_pattern(seg: Segment) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
     """One there-and-back cycle along the path.
 
-    Piece offsets (s), path velocity (m/s) and acceleration
-    at each piece's start, direction, and the cycle's period.
+    Piece offsets (s), path velocity (m/s) and acceleration at each piece's start, direction, and the
+    cycle's period.
     """
     length = math.sqrt(sum(s * s for s in seg.stroke_mm)) / 1000.0
     v, a = seg.feed_mm_min / 60000.0, seg.accel_m_s2

@@ -31,8 +31,8 @@ from simulators.machine.params import AXES, RAD_PER_RPM, MachineParams, Node
 class Network:
     """The thermal network.
 
-    Nodes, capacities ``C`` (J/K), conductance matrix ``K`` (W/K), room conductances and the
-    displacement sensitivities ``S`` (3 x n, um/K).
+    Nodes, capacities ``C`` (J/K), conductance matrix ``K`` (W/K), room conductances and the displacement
+    sensitivities ``S`` (3 x n, um/K).
     """
 
     names: tuple[str, ...]
@@ -198,8 +198,8 @@ class ThermalModel:
 class ThermalStepper:
     """Advances one :class:`ThermalModel` window by window (shared by the offline run and the live source).
 
-    ``step(stats_row, room_dev_k)`` integrates one window with its statistics and the room's mean
-    deviation over it; ``T`` holds the rises (K) at the window's end.
+    ``step(stats_row, room_dev_k)`` integrates one window with its statistics and the room's mean deviation
+    over it; ``T`` holds the rises (K) at the window's end.
     """
 
     def __init__(self, model: ThermalModel) -> None:
