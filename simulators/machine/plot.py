@@ -12,7 +12,8 @@ from gateway.errors import RecordingError, SimulationError
 from gateway.recording import read_recording
 from simulators.machine.drives import FACTORS
 from simulators.machine.params import AXES
-from simulators.machine.run import SimulationResult
+from simulators.machine.run import SimulationResult, simulate
+from simulators.machine.scenario import load_scenario
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -102,9 +103,6 @@ def plot(data: PlotData, out: str | Path) -> Path:
 
 def load_plot_data(source: str | Path) -> PlotData:
     """A CSV recording (``*.csv``) or a scenario to run (bundled name or TOML file)."""
-    from simulators.machine.run import simulate
-    from simulators.machine.scenario import load_scenario
-
     if str(source).endswith(".csv"):
         if not Path(source).is_file():
             raise RecordingError(f"{source}: file not found")
