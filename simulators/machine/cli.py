@@ -1,9 +1,84 @@
-"""``cncgw simulate`` actions of the simulated machine."""
+"""``cncgw simulate`` actions of the simulated machine: ``record``, ``plot``, ``list``."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+
+from gateway.errors import SimulationError
 
 
 def add_actions(actions: argparse._SubParsersAction) -> None:
     """Add this part's actions to ``cncgw simulate``."""
+    rec = actions.add_parser(
+        "record", help="run a scenario offline and write its recording and ground truth",
+        description="Run a scenario as fast as possible and write DIR/<run>.csv (the recording the gateway "
+                    "reads: time_s, the nine factors, measured displacement x_um y_um z_um with sensor noise, "
+                    "room_c if the scenario has a thermometer) and DIR/<run>.truth.csv (noiseless "
+                    "displacement, node temperatures, heat per source, each effect's contribution; the "
+                    "gateway never reads it).")
+    rec.add_argument("scenario", metavar="SCENARIO", help="a bundled scenario's name or a scenario TOML file")
+    rec.add_argument("-o", "--out", metavar="DIR", required=True, help="output directory (created if missing)")
+    rec.add_argument("--seed", type=int, default=None, help="sensor-noise seed instead of the scenario's")
+    rec.add_argument("--no-progress", action="store_true", help="no progress bar")
+    rec.set_defaults(func=run_record)
+
+    plot = actions.add_parser(
+        "plot", help="plot factors and displacement of a scenario or a recording",
+        description="Plot the per-minute factors and the displacement over time: of a recording "
+                    "(*.csv, with its truth file when it lies beside it) or of a scenario run on the spot.")
+    plot.add_argument("source", metavar="SCENARIO_OR_CSV", help="a recording CSV, a scenario name or TOML file")
+    plot.add_argument("-o", "--out", metavar="FILE.png", required=True, help="the PNG to write")
+    plot.set_defaults(func=run_plot)
+
+    lst = actions.add_parser("list", help="list the bundled scenarios (and the switchable effects)",
+                             description="List the bundled scenarios with their length and description.")
+    lst.add_argument("--effects", action="store_true", help="also list every switchable effect's parameters")
+    lst.set_defaults(func=run_list)
+
+
+def run_record(args: argparse.Namespace) -> int:
+    """Run one scenario offline and write its two files."""
+    from simulators.machine.run import simulate, write_run
+    from simulators.machine.scenario import load_scenario
+
+    scenario = load_scenario(args.scenario)
+    if args.seed is not None:
+        if args.seed < 0:
+            raise SimulationError(f"--seed: expected an integer >= 0, got {args.seed}")
+        scenario = dataclasses.replace(scenario, seed=args.seed)
+    result = simulate(scenario, progress=not args.no_progress)
+    try:
+        rec, truth = write_run(result, args.out)
+    except OSError as exc:
+        raise SimulationError(f"{args.out}: cannot write the recording: {exc}") from None
+    peak = result.peak_um()
+    print(f"wrote {rec} ({len(result.time_s)} rows of {result.machine.window_s:g} s, "
+          f"{scenario.duration_h:g} h)")
+    print(f"wrote {truth} (ground truth: not for the gateway)")
+    print("peak displacement (noiseless): " + ", ".join(f"{a} {v:+.2f} um" for a, v in peak.items()))
+    return 0
+
+
+def run_plot(args: argparse.Namespace) -> int:
+    """Plot a recording or a scenario."""
+    from simulators.machine.plot import load_plot_data, plot
+
+    print(f"wrote {plot(load_plot_data(args.source), args.out)}")
+    return 0
+
+
+def run_list(args: argparse.Namespace) -> int:
+    """Print the bundled scenarios."""
+    from simulators.machine.effects import describe_effects
+    from simulators.machine.scenario import bundled_scenarios, load_scenario
+
+    names = bundled_scenarios()
+    width = max(len(n) for n in names)
+    for name in names:
+        sc = load_scenario(name)
+        print(f"{name:<{width}}  {sc.duration_h:5.1f} h  {sc.description}")
+    if args.effects:
+        print()
+        print(describe_effects())
+    return 0

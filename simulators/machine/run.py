@@ -1,0 +1,190 @@
+"""Run a scenario offline, as fast as possible, and write what the gateway reads (and what it must not).
+
+:func:`simulate` walks the scenario window by window: the drives' 2 ms samples give the window's factors
+(mean speed, mean of each current squared, mean |feed|), their heat drives the thermal network, and the
+network gives the tool-to-table displacement sampled at the window's end, as the paper measures it.
+:func:`write_run` writes ``<run>.csv`` in the project's recording format (factors, measured displacement
+with sensor noise and artefacts, the room thermometer when the scenario has one) and ``<run>.truth.csv``
+beside it: noiseless displacement, node temperatures, heat per source and each effect's contribution.
+The gateway's commands never read the truth file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from gateway.recording import write_recording
+from simulators.machine.drives import FACTORS, STAT_INDEX, DriveTimeline
+from simulators.machine.effects import Effects
+from simulators.machine.params import AXES, DEFAULT_MACHINE, MachineParams
+from simulators.machine.scenario import Scenario
+from simulators.machine.schedule import compile_drives
+from simulators.machine.thermal import ThermalModel, room_deviation
+
+_NOISE_BLOCK = 4096
+
+
+class _Progress(tqdm):
+    """A progress bar without tqdm's monitor thread (nothing left running after a run)."""
+
+    monitor_interval = 0
+
+
+@lru_cache(maxsize=32)
+def _noise_block(seed: int, stream: int, block: int) -> np.ndarray:
+    draw = np.random.default_rng([seed, stream, block]).standard_normal((_NOISE_BLOCK, 3))
+    draw.flags.writeable = False
+    return draw
+
+
+def sensor_noise(seed: int, stream: int, rows: np.ndarray) -> np.ndarray:
+    """Standard normal noise (rows x 3) for window boundaries ``rows``.
+
+    The same value for the same boundary whichever way it is asked for (offline in one go, live one at a
+    time): blocks of boundaries are drawn from generators seeded by (seed, stream, block).
+    """
+    rows = np.asarray(rows, dtype=np.int64)
+    out = np.empty((len(rows), 3))
+    for block in np.unique(rows // _NOISE_BLOCK):
+        sel = rows // _NOISE_BLOCK == block
+        out[sel] = _noise_block(seed, stream, int(block))[rows[sel] % _NOISE_BLOCK]
+    return out
+
+
+def artefacts(scenario: Scenario, t_s: np.ndarray, window_s: float) -> np.ndarray:
+    """What the sensor artefacts add at times ``t_s`` (rows x 3, um); their noise is drawn per window."""
+    sa = scenario.effects.sensor_artefacts
+    out = np.zeros((len(t_s), 3))
+    if sa is None:
+        return out
+    out += np.outer(t_s >= sa.step_at_h * 3600.0, sa.step_um)
+    out += np.outer(t_s / 3600.0, sa.drift_um_per_h)
+    if sa.noise_um > 0:
+        out += sa.noise_um * sensor_noise(scenario.seed, 1, np.rint(t_s / window_s).astype(np.int64))
+    return out
+
+
+def room_temperature(scenario: Scenario, t_s: np.ndarray) -> np.ndarray:
+    """The room thermometer at ``t_s`` (deg C)."""
+    return scenario.room.temperature_c + room_deviation(scenario.effects, t_s, t_s)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class SimulationResult:
+    """One offline run: per-window rows stamped at each window's end (``time_s``)."""
+
+    scenario: Scenario
+    machine: MachineParams
+    time_s: np.ndarray
+    stats: np.ndarray  #: window statistics, columns as drives.STATS
+    true_um: np.ndarray  #: noiseless tool-to-table displacement (rows x 3)
+    measured_um: np.ndarray  #: what the displacement sensors read
+    artefact_um: np.ndarray  #: the sensor artefacts' share of the reading (step, drift, extra noise)
+    node_names: tuple[str, ...]
+    temperatures_c: np.ndarray
+    room_c: np.ndarray
+    heat_w: dict[str, np.ndarray]
+    contributions_um: dict[str, np.ndarray]  #: per effect: run with it minus run without it (rows x 3)
+
+    @property
+    def factors(self) -> dict[str, np.ndarray]:
+        return {name: self.stats[:, STAT_INDEX[name]] for name in FACTORS}
+
+    def peak_um(self, which: str = "true") -> dict[str, float]:
+        """Per axis the displacement of largest magnitude (signed), of ``true`` or ``measured``."""
+        d = self.true_um if which == "true" else self.measured_um
+        return {a: float(d[np.argmax(np.abs(d[:, i])), i]) for i, a in enumerate(AXES)}
+
+    def recording_columns(self) -> dict[str, np.ndarray]:
+        cols = dict(self.factors)
+        cols |= {f"{a}_um": self.measured_um[:, i] for i, a in enumerate(AXES)}
+        if self.scenario.room.thermometer:
+            cols["room_c"] = self.room_c
+        return cols
+
+    def truth_columns(self) -> dict[str, np.ndarray]:
+        cols = {f"{a}_true_um": self.true_um[:, i] for i, a in enumerate(AXES)}
+        cols |= {f"{a}_artefact_um": self.artefact_um[:, i] for i, a in enumerate(AXES)}
+        cols["room_c"] = self.room_c
+        cols |= {f"temp_{n}_c": self.temperatures_c[:, i] for i, n in enumerate(self.node_names)}
+        cols |= {f"heat_{n}_w": v for n, v in self.heat_w.items()}
+        for name, c in self.contributions_um.items():
+            cols |= {f"effect_{name}_{a}_um": c[:, i] for i, a in enumerate(AXES)}
+        return cols
+
+
+def window_stats(drives: DriveTimeline, n_windows: int, *, progress: bool = False, fast: bool = True,
+                 desc: str = "") -> np.ndarray:
+    """Statistics of windows ``0..n_windows-1`` (rows) from the drives' 2 ms samples."""
+    n = drives.machine.samples_per_window
+    rows = []
+    # progress: a bar on a terminal only (disable=None), never in tests or logs
+    windows = _Progress(range(n_windows), disable=None, unit="min", desc=desc, leave=False,
+                        mininterval=0.5) if progress else range(n_windows)
+    for w in windows:
+        rows.append(drives.window_stats(w * n + 1, (w + 1) * n, fast=fast))
+    return np.array(rows)
+
+
+def thermal_run(model: ThermalModel, stats: np.ndarray, room_dev: np.ndarray
+                ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Node rises at every window's end (rows x nodes) and the state-dependent heats (W)."""
+    stepper = model.stepper()
+    T = np.empty((len(stats), len(model.net.names)))
+    extra: dict[str, list[float]] = {}
+    for k in range(len(stats)):
+        T[k] = stepper.step(stats[k], float(room_dev[k]))
+        for name, value in stepper.extra_w.items():
+            extra.setdefault(name, []).append(value)
+    return T, {k: np.array(v) for k, v in extra.items()}
+
+
+def simulate(scenario: Scenario, *, machine: MachineParams = DEFAULT_MACHINE, progress: bool = False,
+             fast: bool = True) -> SimulationResult:
+    """Run ``scenario`` offline. ``fast=False`` evaluates every 2 ms sample (the reference, for bench)."""
+    dt = machine.window_s
+    n_windows = round(scenario.duration_s / dt)
+    time_s = dt * np.arange(1, n_windows + 1)
+    drives = compile_drives(scenario, machine)
+    stats = window_stats(drives, n_windows, progress=progress, fast=fast, desc=scenario.name)
+
+    def displacement(effects: Effects) -> tuple[ThermalModel, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        model = ThermalModel(machine, effects)
+        T, extra = thermal_run(model, stats, room_deviation(effects, time_s - dt, time_s))
+        return model, T, (T - model.T0) @ model.net.S.T, extra
+
+    model, T, true_um, extra = displacement(scenario.effects)
+    contributions = {name: true_um - displacement(scenario.effects.without(name))[2]
+                     for name in scenario.effects.enabled if name != "sensor_artefacts"}
+    artefact_um = artefacts(scenario, time_s, dt)
+    if scenario.effects.sensor_artefacts is not None:
+        contributions["sensor_artefacts"] = artefact_um
+    noise = scenario.noise_um * sensor_noise(scenario.seed, 0, np.arange(1, n_windows + 1))
+    heat, _ = model.heat(stats)
+    room_c = room_temperature(scenario, time_s)
+    return SimulationResult(
+        scenario=scenario, machine=machine, time_s=time_s, stats=stats, true_um=true_um,
+        measured_um=true_um + artefact_um + noise, artefact_um=artefact_um, node_names=model.net.names,
+        temperatures_c=T + scenario.room.temperature_c, room_c=room_c, heat_w=heat | extra,
+        contributions_um=contributions)
+
+
+def write_run(result: SimulationResult, out_dir: str | Path) -> tuple[Path, Path]:
+    """Write ``<run>.csv`` (the recording) and ``<run>.truth.csv`` (ground truth) into ``out_dir``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    sc = result.scenario
+    meta = {"scenario": sc.name, "seed": str(sc.seed), "machine": "sim-vmc",
+            "period_s": f"{result.machine.window_s:g}", "source": "cncgw simulate record"}
+    rec = write_recording(out / f"{sc.name}.csv", time_s=result.time_s, columns=result.recording_columns(),
+                          meta=meta)
+    truth_meta = meta | {"kind": "ground truth (not a recording: the gateway never reads this)",
+                         "effects": ", ".join(sc.effects.enabled) or "none"}
+    truth = write_recording(out / f"{sc.name}.truth.csv", time_s=result.time_s,
+                            columns=result.truth_columns(), meta=truth_meta)
+    return rec, truth
