@@ -1,6 +1,6 @@
 """Joint identification vs the paper's steepest descent, on the same experiments.
 
-    .venv/bin/python bench/identify.py [--plant synthetic|sim] [--noise-um 0.1] [--plot out.png]
+    .venv/bin/python bench/identify.py [--plant sim|synthetic] [--noise-um U] [--plot out.png]
 
 Prints, for each method: wall time, and on held-out validation runs (never used for fitting) the max
 |error| per axis and as % of the peak displacement. The headline figures are ratios measured in this run:
@@ -10,8 +10,9 @@ Plants:
 - ``synthetic``: a linear plant of HIGHER order than either method's model (three first-order modes per
   path, mixed signs, time constants from minutes to ~10 h), driven by per-minute factor values of the
   paper's 9 experiments (12 h each) and validated on the paper's two validation runs.
-- ``sim``: the bundled simulated machine (simulators/), effects off: the paper's identification scenarios
-  and validation runs recorded through the drive and thermal simulation.
+- ``sim`` (default): the bundled simulated machine (simulators/): a 15-node thermal network behind drive
+  models, effects off; the paper's 9 identification scenarios, validated on the paper's random spindle
+  run, its spindle-and-feeds run and a 24 h production day.
 """
 
 from __future__ import annotations
@@ -113,13 +114,24 @@ def synthetic_data(factors: tuple[str, ...], noise_um: float):
     return train, held, truth
 
 
-def sim_data(noise_um: float):
-    try:
-        from simulators.machine import bench_recordings  # provided by the simulated machine
-    except ImportError:
-        raise SystemExit("bench/identify.py: the simulated machine is not available yet; "
-                         "use --plant synthetic") from None
-    return bench_recordings(noise_um=noise_um)
+IDENTIFICATION_SCENARIOS = ("spindle-1000rpm", "spindle-500rpm", "spindle-400-600rpm", "feed-x-fast", "feed-x-accel",
+                            "feed-y-fast", "feed-y-accel", "feed-z-fast", "feed-z-accel")
+VALIDATION_SCENARIOS = ("random-spindle", "spindle-feeds", "production-day")
+
+
+def sim_data(noise_um: float | None):
+    """(train, held-out, held-out noiseless truth) from the simulated machine, effects as the scenarios say."""
+    from dataclasses import replace
+
+    from simulators.machine import load_scenario, simulate
+
+    def run(name: str):
+        sc = load_scenario(name)
+        return simulate(sc if noise_um is None else replace(sc, noise_um=noise_um))
+
+    train = [run(n).recording() for n in IDENTIFICATION_SCENARIOS]
+    held_runs = [run(n) for n in VALIDATION_SCENARIOS]
+    return train, [r.recording() for r in held_runs], [r.recording("true") for r in held_runs]
 
 
 def worst(ests, axes, key: str) -> tuple[float, str]:
@@ -130,18 +142,21 @@ def worst(ests, axes, key: str) -> tuple[float, str]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--plant", choices=("synthetic", "sim"), default="synthetic")
-    ap.add_argument("--noise-um", type=float, default=0.1)
+    ap.add_argument("--plant", choices=("synthetic", "sim"), default="sim")
+    ap.add_argument("--noise-um", type=float, default=None,
+                    help="sensor noise (default: the scenarios' own for sim, 0.1 um for synthetic)")
     ap.add_argument("--paper-max-iter", type=int, default=3000)
     ap.add_argument("--plot", help="PNG of the held-out runs with the joint model")
     args = ap.parse_args()
 
     profile = load_profile(PROFILE)
     factors, axes = profile.factor_names, profile.axes
-    train, held, truth = (synthetic_data(factors, args.noise_um) if args.plant == "synthetic"
-                          else sim_data(args.noise_um))
+    if args.plant == "synthetic":
+        train, held, truth = synthetic_data(factors, 0.1 if args.noise_um is None else args.noise_um)
+    else:
+        train, held, truth = sim_data(args.noise_um)
     print(f"plant {args.plant}: {len(train)} identification experiments "
-          f"({sum(len(r) for r in train) / 60:.0f} h), {len(held)} held-out runs, noise {args.noise_um} um")
+          f"({sum(len(r) for r in train) / 60:.0f} h), {len(held)} held-out runs")
 
     runs = {"joint": {}, "joint, 2nd order only": {"candidates": ("second_order",), "prune": False},
             "paper": {"method": "paper", "paper_max_iter": args.paper_max_iter}}

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from gateway.recording import write_recording
+from gateway.recording import Recording, write_recording
 from simulators.machine.drives import FACTORS, STAT_INDEX, DriveTimeline
 from simulators.machine.effects import Effects
 from simulators.machine.params import AXES, DEFAULT_MACHINE, MachineParams
@@ -106,6 +106,21 @@ class SimulationResult:
         if self.scenario.room.thermometer:
             cols["room_c"] = self.room_c
         return cols
+
+    def recording(self, which: str = "measured") -> Recording:
+        """The run as a gateway :class:`~gateway.recording.Recording`.
+
+        ``which="measured"``: what the sensors read; ``"true"``: the noiseless displacement (ground truth,
+        for benchmarks and tests only).
+        """
+        if which not in ("measured", "true"):
+            raise ValueError(f"which must be 'measured' or 'true'. Got {which!r}")
+        disp = self.measured_um if which == "measured" else self.true_um
+        extras = {"room_c": self.room_c} if self.scenario.room.thermometer else {}
+        return Recording(source=f"{self.scenario.name}.csv", period_s=self.machine.window_s, time_s=self.time_s,
+                         present=np.ones(len(self.time_s), dtype=bool), factors=self.factors,
+                         displacement={a: disp[:, i].copy() for i, a in enumerate(AXES)}, extras=extras,
+                         meta={"scenario": self.scenario.name, "seed": str(self.scenario.seed)})
 
     def truth_columns(self) -> dict[str, np.ndarray]:
         cols = {f"{a}_true_um": self.true_um[:, i] for i, a in enumerate(AXES)}
