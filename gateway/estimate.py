@@ -96,7 +96,7 @@ def estimate(
     if align not in ALIGN_CHOICES:
         raise ValueError(f"align must be one of {ALIGN_CHOICES}. Got {align!r}")
     prep = prepare(rec, factors=model.factors, axes=model.axes, initial=initial, reference=model.reference,
-                   gap_policy=gap_policy)
+                   gap_policy=gap_policy, inputs=model.inputs)
     est = model.discretize(rec.period_s).simulate(prep.du)
     measured = prep.y.copy()
     notes = list(prep.notes)

@@ -12,6 +12,10 @@ functions would predict a drift that is not there.
 - ``initial="reference"``: it was in equilibrium with the model's reference levels (the idle levels seen
   during identification); use this when a recording starts in the middle of work.
 
+Derived inputs (``inputs``, see :mod:`gateway.model.inputs`) are computed from the gap-filled factors, the
+time stamps and the recording's other columns, and enter ``du`` after the factors as deviations from
+their value in the same initial equilibrium.
+
 Gaps (missing windows) are never interpolated silently: ``gap_policy="hold"`` assumes the factors of the
 last window before the gap went on, ``"reference"`` assumes the machine stood idle at the reference
 state; either way the rows stay marked missing and carry no measured displacement.
@@ -25,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gateway.errors import RecordingError
+from gateway.model.inputs import Column, DerivedInput, evaluate_inputs, initial_values
 from gateway.recording import Recording
 
 INITIAL_CHOICES = ("first", "reference")
@@ -33,7 +38,10 @@ GAP_POLICIES = ("hold", "reference")
 
 @dataclass(frozen=True, kw_only=True)
 class Prepared:
-    """A recording ready for the model: deviations ``du`` (factors, N), measured ``y`` (axes, N)."""
+    """A recording ready for the model: deviations ``du`` (inputs, N), measured ``y`` (axes, N).
+
+    ``u0`` holds the factors' initial levels; rows of ``du`` beyond the factors are derived inputs.
+    """
 
     name: str
     dt_s: float
@@ -57,6 +65,7 @@ def prepare(
     initial: str = "first",
     reference: Mapping[str, float] | None = None,
     gap_policy: str = "hold",
+    inputs: Sequence[DerivedInput] = (),
 ) -> Prepared:
     """Turn ``rec`` into deviations from its initial equilibrium; see the module docstring."""
     if initial not in INITIAL_CHOICES:
@@ -110,10 +119,35 @@ def prepare(
                     else:
                         row[k] = last
 
+    du = u - u0[:, None]
+    if inputs:
+        du = np.vstack([du, _derived(rec, inputs, factors, u, u0)])
+
     y = np.full((len(axes), n), np.nan)
     for i, a in enumerate(axes):
         if a in rec.displacement:
             y[i] = rec.displacement[a]
     y[:, ~rec.present] = np.nan
-    return Prepared(name=rec.name, dt_s=rec.period_s, time_s=np.asarray(rec.time_s), du=u - u0[:, None],
+    return Prepared(name=rec.name, dt_s=rec.period_s, time_s=np.asarray(rec.time_s), du=du,
                     u0=u0, y=y, present=np.asarray(rec.present), notes=tuple(notes))
+
+
+def _derived(rec: Recording, inputs: Sequence[DerivedInput], factors: Sequence[str], u: np.ndarray,
+             u0: np.ndarray) -> np.ndarray:
+    """Deviations of the derived inputs (rows in declaration order) from the initial equilibrium."""
+    columns = {}
+    for inp in inputs:
+        if isinstance(inp, Column):
+            col = rec.extras.get(inp.column)
+            if col is None or not np.isfinite(col).any():
+                have = ", ".join(sorted(rec.extras)) or "none"
+                raise RecordingError(f'{rec.source}: the model\'s input {inp.name} reads column "{inp.column}", '
+                                     f"which this recording does not have (numeric extra columns: {have})")
+            columns[inp.column] = col
+    initial = {f: float(v) for f, v in zip(factors, u0, strict=True)}
+    initial |= {c: float(v[np.isfinite(v)][0]) for c, v in columns.items()}
+    time_s = np.asarray(rec.time_s, float)
+    values = evaluate_inputs(inputs, {f: u[j] for j, f in enumerate(factors)}, time_s=time_s, dt_s=rec.period_s,
+                             columns=columns, initial=initial)
+    start = initial_values(inputs, initial, time0_s=float(time_s[0]))
+    return np.array([values[d.name] - start[d.name] for d in inputs])

@@ -156,7 +156,7 @@ def identification_summary(model: ThermalModel) -> list[str]:
     """A table of every path: structure, static gain (um per unit) and K, time constants, sd."""
     lines = [f"{'axis':<4} {'factor':<16} {'kind':<13} {'gain um/unit':>13} {'sd':>9} {'K':>11}  time constants"]
     for a in model.axes:
-        for f in model.factors:
+        for f in model.input_names:  # derived inputs (added by diagnosis) after the factors
             p = model.path(a, f)
             if p.kind == "zero":
                 lines.append(f"{a:<4} {f:<16} {'zero':<13} {0.0:>13.4g} {'':>9} {'inf':>11}")

@@ -20,6 +20,7 @@ import tomli_w
 
 from gateway.errors import ModelError
 from gateway.model.discrete import Section
+from gateway.model.inputs import DerivedInput, check_order, input_to_toml, parse_inputs
 from gateway.model.terms import TERM_KINDS, FirstOrder, SecondOrder, Term
 from gateway.tomlcheck import Table, TomlDoc
 
@@ -103,7 +104,11 @@ class PathTF:
 
 @dataclass(frozen=True, kw_only=True)
 class ThermalModel:
-    """lambda_i = sum_j G_ij(s) (u_j - reference_j), for axes i and factors j."""
+    """lambda_i = sum_j G_ij(s) (u_j - reference_j), for axes i and inputs j.
+
+    The inputs are the profile's ``factors`` followed by the derived ``inputs`` (see
+    :mod:`gateway.model.inputs`) that diagnosis adds; a model without derived inputs is the paper's.
+    """
 
     axes: tuple[str, ...]
     factors: tuple[str, ...]
@@ -113,23 +118,35 @@ class ThermalModel:
     machine: str = ""
     #: provenance and fit figures written by identification; informational, kept on round trip
     info: Mapping[str, Any] = field(default_factory=dict)
+    #: derived inputs (computed from recorded columns), after the factors in :attr:`input_names`
+    inputs: tuple[DerivedInput, ...] = ()
 
     def __post_init__(self) -> None:
         if len(set(self.axes)) != len(self.axes) or len(set(self.factors)) != len(self.factors):
             raise ValueError("axes and factors must be unique")
+        problems = check_order(self.inputs, self.factors)
+        if problems:
+            raise ValueError("; ".join(problems))
+        object.__setattr__(self, "inputs", tuple(self.inputs))
         full: dict[tuple[str, str], PathTF] = {}
         for a in self.axes:
-            for f in self.factors:
+            for f in self.input_names:
                 p = self.paths.get((a, f))
                 full[(a, f)] = p if p is not None else PathTF(axis=a, factor=f)
         extra = set(self.paths) - set(full)
         if extra:
             raise ValueError(f"paths for unknown axis/factor: {sorted(extra)}")
         object.__setattr__(self, "paths", MappingProxyType(full))
-        object.__setattr__(self, "units", MappingProxyType({f: self.units.get(f, "") for f in self.factors}))
+        units = {f: self.units.get(f, "") for f in self.factors} | {d.name: d.unit for d in self.inputs}
+        object.__setattr__(self, "units", MappingProxyType(units))
         object.__setattr__(self, "reference",
                            MappingProxyType({f: float(self.reference.get(f, 0.0)) for f in self.factors}))
         object.__setattr__(self, "info", MappingProxyType(dict(self.info)))
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        """Every model input: the factors, then the derived inputs."""
+        return self.factors + tuple(d.name for d in self.inputs)
 
     def path(self, axis: str, factor: str) -> PathTF:
         return self.paths[(axis, factor)]
@@ -138,8 +155,8 @@ class ThermalModel:
         return np.array([self.reference[f] for f in self.factors])
 
     def gain_matrix(self) -> np.ndarray:
-        """Static gains (um per factor unit), shape (axes, factors)."""
-        return np.array([[self.paths[(a, f)].gain for f in self.factors] for a in self.axes])
+        """Static gains (um per input unit), shape (axes, inputs)."""
+        return np.array([[self.paths[(a, f)].gain for f in self.input_names] for a in self.axes])
 
     def with_paths(self, paths: Iterable[PathTF], **changes: Any) -> ThermalModel:
         new = dict(self.paths)
@@ -157,7 +174,8 @@ class ThermalModel:
                 and dict(self.units) == dict(other.units) and dict(self.reference) == dict(other.reference)
                 and {k: _path_key(v) for k, v in self.paths.items()}
                 == {k: _path_key(v) for k, v in other.paths.items()}
-                and self.machine == other.machine and _plain(self.info) == _plain(other.info))
+                and self.machine == other.machine and _plain(self.info) == _plain(other.info)
+                and self.inputs == other.inputs)
 
     __hash__ = None  # type: ignore[assignment]
 
@@ -184,7 +202,7 @@ class DiscreteModel:
         self.sections: list[list[tuple[int, float, Section]]] = []
         for a in model.axes:
             row = []
-            for j, f in enumerate(model.factors):
+            for j, f in enumerate(model.input_names):
                 for gain, sec in model.path(a, f).sections(self.dt_s):
                     if gain != 0.0:
                         row.append((j, gain, sec))
@@ -192,10 +210,10 @@ class DiscreteModel:
         self.max_delay = max((s.m + 1 for row in self.sections for _, _, s in row), default=1)
 
     def simulate(self, du: np.ndarray) -> np.ndarray:
-        """Displacements (axes, N) for factor deviations ``du`` (factors, N), from the reference state."""
+        """Displacements (axes, N) for input deviations ``du`` (inputs, N), from the reference state."""
         du = np.asarray(du, dtype=float)
-        if du.ndim != 2 or du.shape[0] != len(self.model.factors):
-            raise ValueError(f"du: wrong shape {du.shape}, expected ({len(self.model.factors)}, N)")
+        if du.ndim != 2 or du.shape[0] != len(self.model.input_names):
+            raise ValueError(f"du: wrong shape {du.shape}, expected ({len(self.model.input_names)}, N)")
         if not np.all(np.isfinite(du)):
             raise ValueError("du: inputs must be finite (fill gaps by a stated policy first)")
         y = np.zeros((len(self.model.axes), du.shape[1]))
@@ -205,9 +223,9 @@ class DiscreteModel:
         return y
 
     def contributions(self, du: np.ndarray) -> np.ndarray:
-        """Per-path displacements, shape (axes, factors, N): what each factor adds to each axis."""
+        """Per-path displacements, shape (axes, inputs, N): what each input adds to each axis."""
         du = np.asarray(du, dtype=float)
-        out = np.zeros((len(self.model.axes), len(self.model.factors), du.shape[1]))
+        out = np.zeros((len(self.model.axes), len(self.model.input_names), du.shape[1]))
         for i, row in enumerate(self.sections):
             for j, gain, sec in row:
                 out[i, j] += gain * sec.filter(du[j])
@@ -228,12 +246,16 @@ class LiveEstimator:
         self.dm = dm
         self._flat = [(i, j, gain, sec) for i, row in enumerate(dm.sections) for j, gain, sec in row]
         self._x = [np.zeros(sec.order) for _, _, _, sec in self._flat]
-        n_f = len(dm.model.factors)
+        n_f = len(dm.model.input_names)
         self._hist = np.zeros((dm.max_delay + 1, n_f))  # row 0 = current input, row d = d steps ago
         self.steps = 0
 
     def step(self, du: Sequence[float] | np.ndarray) -> np.ndarray:
-        """Advance one window with factor deviations ``du``; return the displacement per axis (um)."""
+        """Advance one window with input deviations ``du``; return the displacement per axis (um).
+
+        A model with derived inputs needs their deviations too (factors first): compute them with
+        :class:`gateway.model.inputs.InputStepper` from the window's factor values.
+        """
         du = np.asarray(du, dtype=float)
         if du.shape != (self._hist.shape[1],) or not np.all(np.isfinite(du)):
             raise ValueError(f"du: expected {self._hist.shape[1]} finite factor deviations, got {du!r}")
@@ -278,7 +300,7 @@ def paper_convolution(model: ThermalModel, du: np.ndarray, dt_s: float, n_terms:
     t = dt_s * np.arange(n_terms + 1)
     y = np.zeros((len(model.axes), du.shape[1]))
     for i, a in enumerate(model.axes):
-        for j, f in enumerate(model.factors):
+        for j, f in enumerate(model.input_names):
             p = model.path(a, f)
             if p.kind != "zero":
                 y[i] += np.convolve(du[j], p.impulse_response(t) * dt_s)[: du.shape[1]]
@@ -291,14 +313,16 @@ def model_to_toml(model: ThermalModel) -> str:
     doc: dict[str, Any] = {
         "format": FORMAT,
         "model": {"machine": model.machine, "axes": list(model.axes), "factors": list(model.factors)},
-        "units": dict(model.units),
+        "units": {f: model.units[f] for f in model.factors},  # derived inputs carry theirs
         "reference": {f: float(v) for f, v in model.reference.items()},
     }
     if model.info:
         doc["info"] = _plain(model.info)
+    if model.inputs:
+        doc["inputs"] = {d.name: input_to_toml(d) for d in model.inputs}
     paths = []
     for a in model.axes:
-        for f in model.factors:
+        for f in model.input_names:
             p = model.path(a, f)
             entry: dict[str, Any] = {"axis": a, "factor": f, "kind": p.kind, "gain": p.gain, "K": p.K}
             if p.delay_s:
@@ -347,6 +371,10 @@ def load_model(path: str | Path, *, text: str | None = None) -> ThermalModel:
         axes = head.str_list("axes", choices=("x", "y", "z"), min_len=1) or ()
         factors = head.str_list("factors", min_len=1) or ()
         head.done()
+    inputs = parse_inputs(root) if "inputs" in root else []  # files without derived inputs read as before
+    for problem in check_order(inputs, factors):
+        root.problem("inputs", problem)
+    names = factors + tuple(d.name for d in inputs)
     units = _name_table(root.table("units"), factors, str)
     reference = _name_table(root.table("reference"), factors, float)
     info_t = root.table("info")
@@ -365,7 +393,7 @@ def load_model(path: str | Path, *, text: str | None = None) -> ThermalModel:
             root.problem("path", f"entry {n + 1}: expected a [[path]] table")
             continue
         t = Table(doc, entry, ("path", str(n + 1)))
-        p = _parse_path(t, axes, factors)
+        p = _parse_path(t, axes, names)
         if p is not None:
             if (p.axis, p.factor) in paths:
                 t.problem(None, f"a second path for axis {p.axis}, factor {p.factor}: expected one per pair")
@@ -373,7 +401,7 @@ def load_model(path: str | Path, *, text: str | None = None) -> ThermalModel:
     root.done()
     doc.raise_problems()
     return ThermalModel(axes=axes, factors=factors, units=units, reference=reference, paths=paths,
-                        machine=machine, info=info)
+                        machine=machine, info=info, inputs=tuple(inputs))
 
 
 def _name_table(t: Table | None, factors: Sequence[str], kind: type) -> dict[str, Any]:

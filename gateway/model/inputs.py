@@ -1,0 +1,384 @@
+"""Derived model inputs: signals computed from recorded columns rather than read as profile factors.
+
+Diagnosis extends a model with physics the profile's factors do not carry directly; each extension is an
+input of its own feeding ordinary paths, so an extended model is still a matrix of transfer functions:
+
+- :class:`Product`: the product of two signals, each optionally behind a first-order lag; the square of
+  the spindle speed (iron eddy loss ~ n^2), or the speed times a lag of itself (bearing friction that
+  grows with the bearing's own temperature: a nonlinear gain).
+- :class:`Sum`: the sum of signals, e.g. every amplifier current squared (control cabinet losses).
+- :class:`Flag`: 1 while a signal is above a threshold (the spindle running: a chiller switching with it).
+- :class:`Column`: a recorded column that is not a factor, e.g. the room temperature ``room_c``.
+- :class:`Periodic`: sin or cos of the time of day (a daily room cycle nobody recorded).
+- :class:`Same`: a factor again, so that a second path from it can have a dead time of its own.
+
+Signals named in ``of`` are profile factors or derived inputs declared earlier. Every derived input is a
+causal function of the window values with constant work per window: :class:`InputStepper` computes it
+live, :func:`evaluate_inputs` in batch with the same recursion, so the two agree. The model works on
+deviations from the initial equilibrium: a lag starts settled at its signal's initial value, and
+``prepare`` subtracts each derived input's initial value like a factor's.
+
+The square of a window MEAN understates the mean of the square when the speed varies inside the window
+(by the variance within the window); a profile factor with ``stat = "mean_square"`` on the speed channel
+is exact and is the better choice for live use once the physics is known.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+import scipy.signal
+
+from gateway.tomlcheck import NAME, Table
+
+#: signal values a derived input may read: factor and earlier input values, keyed by name
+Signals = Mapping[str, np.ndarray]
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Product:
+    """``lag(of[0], lag_s[0]) * lag(of[1], lag_s[1])``; a lag of 0 s is the signal itself."""
+
+    kind: ClassVar[str] = "product"
+    name: str
+    of: tuple[str, str]
+    lag_s: tuple[float, float] = (0.0, 0.0)
+    unit: str = ""
+    note: str = ""
+
+    def __post_init__(self) -> None:
+        if len(self.of) != 2 or len(self.lag_s) != 2:
+            raise ValueError(f"input {self.name}: product needs two signals and two lags. Got of={self.of!r}, "
+                             f"lag_s={self.lag_s!r}")
+        if not all(math.isfinite(t) and t >= 0 for t in self.lag_s):
+            raise ValueError(f"input {self.name}: lag_s must be finite and >= 0. Got {self.lag_s!r}")
+
+    def describe(self) -> str:
+        parts = [s if t == 0 else f"lag({s}, {t / 60:.3g} min)" for s, t in zip(self.of, self.lag_s, strict=True)]
+        return " * ".join(parts)
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Sum:
+    """The sum of signals ``of``."""
+
+    kind: ClassVar[str] = "sum"
+    name: str
+    of: tuple[str, ...]
+    unit: str = ""
+    note: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.of:
+            raise ValueError(f"input {self.name}: sum needs at least one signal")
+
+    def describe(self) -> str:
+        return " + ".join(self.of)
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Flag:
+    """1 while signal ``of`` is above ``above``, else 0."""
+
+    kind: ClassVar[str] = "flag"
+    name: str
+    of: str
+    above: float = 0.0
+    unit: str = "1"
+    note: str = ""
+
+    def describe(self) -> str:
+        return f"1 if {self.of} > {self.above:g} else 0"
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Column:
+    """A recorded column that is not a factor (e.g. ``room_c``)."""
+
+    kind: ClassVar[str] = "column"
+    name: str
+    column: str
+    unit: str = ""
+    note: str = ""
+
+    def describe(self) -> str:
+        return f"recorded column {self.column}"
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Periodic:
+    """``sin`` or ``cos`` of 2 pi t / period_s, t the row's time stamp (time of day for 86400 s)."""
+
+    kind: ClassVar[str] = "periodic"
+    name: str
+    period_s: float
+    phase: str = "sin"
+    unit: str = "1"
+    note: str = ""
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.period_s) and self.period_s > 0) or self.phase not in ("sin", "cos"):
+            raise ValueError(f"input {self.name}: periodic needs period_s > 0 and phase 'sin' or 'cos'. Got "
+                             f"period_s={self.period_s!r}, phase={self.phase!r}")
+
+    def describe(self) -> str:
+        return f"{self.phase}(2 pi t / {self.period_s / 3600:g} h)"
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Same:
+    """The factor ``of`` itself, for a second path from it (with its own dead time)."""
+
+    kind: ClassVar[str] = "same"
+    name: str
+    of: str
+    unit: str = ""
+    note: str = ""
+
+    def describe(self) -> str:
+        return f"{self.of} (second path)"
+
+
+DerivedInput = Product | Sum | Flag | Column | Periodic | Same
+INPUT_KINDS = {c.kind: c for c in (Product, Sum, Flag, Column, Periodic, Same)}
+
+
+def sources(inp: DerivedInput) -> tuple[str, ...]:
+    """The signals (factors or earlier inputs) a derived input reads."""
+    if isinstance(inp, Product | Sum):
+        return tuple(inp.of)
+    if isinstance(inp, Flag | Same):
+        return (inp.of,)
+    return ()
+
+
+def check_order(inputs: Sequence[DerivedInput], factors: Sequence[str]) -> list[str]:
+    """Problems with names and references: each ``of`` must be a factor or an input declared before."""
+    problems = []
+    known = set(factors)
+    for inp in inputs:
+        if inp.name in known:
+            problems.append(f"input {inp.name}: the name is already used by a factor or an earlier input")
+        for s in sources(inp):
+            if s not in known:
+                problems.append(f'input {inp.name}: "{s}" is neither a factor nor an input declared before it')
+        known.add(inp.name)
+    return problems
+
+
+def lag_coefficient(tau_s: float, dt_s: float) -> float:
+    """Pole of a unit-gain first-order lag under the zero-order hold: y_k = a y_{k-1} + (1 - a) u_k."""
+    return math.exp(-dt_s / tau_s) if tau_s > 0 else 0.0
+
+
+def initial_values(inputs: Sequence[DerivedInput], initial: Mapping[str, float], *,
+                   time0_s: float) -> dict[str, float]:
+    """Every signal's value in the initial equilibrium: ``initial`` (factors, recorded columns) and each input.
+
+    Lags are settled there, so a product of lags is the product of the initial values; a periodic input has
+    no equilibrium and takes its value at the first window, ``time0_s``.
+    """
+    values = dict(initial)
+    for inp in inputs:
+        if isinstance(inp, Product):
+            v = float(values[inp.of[0]]) * float(values[inp.of[1]])
+        elif isinstance(inp, Sum):
+            v = float(sum(float(values[s]) for s in inp.of))
+        elif isinstance(inp, Flag):
+            v = 1.0 if float(values[inp.of]) > inp.above else 0.0
+        elif isinstance(inp, Same):
+            v = float(values[inp.of])
+        elif isinstance(inp, Periodic):
+            arg = 2.0 * math.pi * time0_s / inp.period_s
+            v = math.sin(arg) if inp.phase == "sin" else math.cos(arg)
+        else:
+            v = float(values.get(inp.column, 0.0))
+        values[inp.name] = v
+    return values
+
+
+def evaluate_inputs(inputs: Sequence[DerivedInput], signals: Signals, *, time_s: np.ndarray, dt_s: float,
+                    columns: Mapping[str, np.ndarray] | None = None,
+                    initial: Mapping[str, float] | None = None) -> dict[str, np.ndarray]:
+    """Values (not deviations) of every derived input over a whole recording, in declaration order.
+
+    ``signals`` holds the factors' window values (gaps already filled by the caller's policy), ``columns``
+    the recording's other numeric columns. A column's missing values hold the last value seen (the first
+    seen before it), the same rule the live :class:`InputStepper` follows. ``initial`` is the equilibrium
+    the machine starts in (factors and columns; default: the first window), where every lag starts settled.
+    """
+    columns = {k: hold_missing(np.asarray(v, float)) for k, v in (columns or {}).items()}
+    if initial is None:
+        initial = {k: float(v[0]) for k, v in {**signals, **columns}.items() if len(v)}
+    time_s = np.asarray(time_s, float)
+    start = initial_values(inputs, initial, time0_s=float(time_s[0]) if time_s.size else 0.0)
+    values: dict[str, np.ndarray] = {k: np.asarray(v, float) for k, v in signals.items()}
+    out: dict[str, np.ndarray] = {}
+    for inp in inputs:
+        if isinstance(inp, Product):
+            a = _lag(values[inp.of[0]], inp.lag_s[0], dt_s, start[inp.of[0]])
+            b = _lag(values[inp.of[1]], inp.lag_s[1], dt_s, start[inp.of[1]])
+            v = a * b
+        elif isinstance(inp, Sum):
+            v = np.sum([values[s] for s in inp.of], axis=0)
+        elif isinstance(inp, Flag):
+            v = (values[inp.of] > inp.above).astype(float)
+        elif isinstance(inp, Same):
+            v = values[inp.of].copy()
+        elif isinstance(inp, Periodic):
+            arg = 2.0 * math.pi * time_s / inp.period_s
+            v = np.sin(arg) if inp.phase == "sin" else np.cos(arg)
+        else:
+            if inp.column not in columns:
+                raise KeyError(inp.column)
+            v = columns[inp.column]
+        values[inp.name] = out[inp.name] = v
+    return out
+
+
+def _lag(x: np.ndarray, tau_s: float, dt_s: float, settled_at: float) -> np.ndarray:
+    """First-order lag of ``x``, its state settled at ``settled_at`` before the first window."""
+    if tau_s == 0 or x.size == 0:
+        return x
+    a = lag_coefficient(tau_s, dt_s)
+    y, _ = scipy.signal.lfilter([1.0 - a], [1.0, -a], x, zi=[a * settled_at])
+    return y
+
+
+def hold_missing(x: np.ndarray) -> np.ndarray:
+    """Missing values replaced by the last value seen (leading ones by the first value seen)."""
+    ok = np.isfinite(x)
+    if ok.all():
+        return x.copy()
+    if not ok.any():
+        return np.zeros_like(x)
+    idx = np.where(ok, np.arange(len(x)), 0)
+    np.maximum.accumulate(idx, out=idx)
+    out = x[idx]
+    out[: int(np.flatnonzero(ok)[0])] = x[ok][0]
+    return out
+
+
+class InputStepper:
+    """Live evaluation of derived inputs, one window at a time, with constant work per window.
+
+    Start it with the initial equilibrium (factor values, and the first value of every recorded column an
+    input reads); each :meth:`step` takes one window's values and returns the derived inputs' values, the
+    same numbers :func:`evaluate_inputs` gives in batch.
+    """
+
+    def __init__(self, inputs: Sequence[DerivedInput], *, dt_s: float, initial: Mapping[str, float],
+                 time0_s: float = 0.0) -> None:
+        self.inputs = tuple(inputs)
+        self.dt_s = float(dt_s)
+        start = initial_values(self.inputs, initial, time0_s=time0_s)
+        # lag states (settled at the initial equilibrium) and the last value seen of every column
+        self._lags = {(inp.name, k): float(start[inp.of[k]]) for inp in self.inputs if isinstance(inp, Product)
+                      for k in range(2)}
+        self._held = {inp.column: float(start[inp.name]) for inp in self.inputs if isinstance(inp, Column)}
+
+    def step(self, signals: Mapping[str, float], *, time_s: float,
+             columns: Mapping[str, float] | None = None) -> dict[str, float]:
+        """Values of every derived input for one window (``signals``: factor values of that window)."""
+        values: dict[str, float] = {k: float(v) for k, v in signals.items()}
+        out: dict[str, float] = {}
+        for inp in self.inputs:
+            if isinstance(inp, Product):
+                parts = []
+                for k in range(2):
+                    x = values[inp.of[k]]
+                    if inp.lag_s[k] > 0:
+                        a = lag_coefficient(inp.lag_s[k], self.dt_s)
+                        x = a * self._lags[(inp.name, k)] + (1.0 - a) * x
+                        self._lags[(inp.name, k)] = x
+                    parts.append(x)
+                v = parts[0] * parts[1]
+            elif isinstance(inp, Sum):
+                v = float(sum(values[s] for s in inp.of))
+            elif isinstance(inp, Flag):
+                v = 1.0 if values[inp.of] > inp.above else 0.0
+            elif isinstance(inp, Same):
+                v = values[inp.of]
+            elif isinstance(inp, Periodic):
+                arg = 2.0 * math.pi * time_s / inp.period_s
+                v = math.sin(arg) if inp.phase == "sin" else math.cos(arg)
+            else:
+                x = math.nan if columns is None else float(columns.get(inp.column, math.nan))
+                if math.isfinite(x):
+                    self._held[inp.column] = x
+                v = self._held[inp.column]
+            values[inp.name] = out[inp.name] = v
+        return out
+
+
+# ------------------------------------------------------------------------------------------------ TOML --
+def input_to_toml(inp: DerivedInput) -> dict[str, object]:
+    """The ``[inputs.NAME]`` table of a derived input (floats always, for an exact round trip)."""
+    d: dict[str, object] = {"kind": inp.kind}
+    if isinstance(inp, Product):
+        d |= {"of": list(inp.of), "lag_s": [float(t) for t in inp.lag_s]}
+    elif isinstance(inp, Sum):
+        d["of"] = list(inp.of)
+    elif isinstance(inp, Flag):
+        d |= {"of": inp.of, "above": float(inp.above)}
+    elif isinstance(inp, Same):
+        d["of"] = inp.of
+    elif isinstance(inp, Periodic):
+        d |= {"period_s": float(inp.period_s), "phase": inp.phase}
+    else:
+        d["column"] = inp.column
+    d["unit"] = inp.unit
+    if inp.note:
+        d["note"] = inp.note
+    return d
+
+
+def parse_inputs(root: Table) -> list[DerivedInput]:
+    """Every ``[inputs.NAME]`` table, checked with the typed getters (problems recorded, not raised)."""
+    out: list[DerivedInput] = []
+    for name, t in root.tables("inputs", name_pattern=NAME):
+        kind = t.str("kind", choices=list(INPUT_KINDS))
+        unit = t.str("unit", default="") or ""
+        note = t.str("note", default="") or ""
+        inp: DerivedInput | None = None
+        if kind == "product":
+            of = t.str_list("of", unique=False, min_len=2)
+            lags = t.float_list("lag_s", default=(0.0, 0.0), expected="an array of two lags in s, each >= 0")
+            if of is not None and len(of) != 2:
+                t.problem("of", f"expected exactly two signal names, got {len(of)}")
+                of = None
+            if lags is not None and (len(lags) != 2 or min(lags) < 0):
+                t.problem("lag_s", f"expected an array of two lags in s, each >= 0, got {list(lags)!r}")
+                lags = None
+            if of is not None and lags is not None:
+                inp = Product(name=name, of=(of[0], of[1]), lag_s=(lags[0], lags[1]), unit=unit, note=note)
+        elif kind == "sum":
+            of = t.str_list("of", min_len=1)
+            if of is not None:
+                inp = Sum(name=name, of=tuple(of), unit=unit, note=note)
+        elif kind == "flag":
+            of1 = t.str("of")
+            above = t.float("above", default=0.0)
+            if of1 is not None and above is not None:
+                inp = Flag(name=name, of=of1, above=above, unit=unit or "1", note=note)
+        elif kind == "same":
+            of1 = t.str("of")
+            if of1 is not None:
+                inp = Same(name=name, of=of1, unit=unit, note=note)
+        elif kind == "periodic":
+            period = t.float("period_s", min=0.0, min_exclusive=True)
+            phase = t.str("phase", choices=("sin", "cos"))
+            if period is not None and phase is not None:
+                inp = Periodic(name=name, period_s=period, phase=phase, unit=unit or "1", note=note)
+        elif kind == "column":
+            col = t.str("column")
+            if col is not None:
+                inp = Column(name=name, column=col, unit=unit, note=note)
+        t.done()
+        if inp is not None:
+            out.append(inp)
+    return out
