@@ -1,0 +1,228 @@
+"""Recordings prepared for a model and stacked end to end, with the responses hypotheses are made of.
+
+Every recording starts from its own initial equilibrium (the model works on deviations), so responses are
+filtered per recording, from rest, and concatenated. A :class:`Part` is one input through some terms
+behind a dead time; a :class:`Component` is a sum of parts sharing one fitted gain. Columns of the
+regression are the components' responses, computed with the model's own discretisation
+(:class:`~gateway.model.discrete.Section`), so an accepted hypothesis written into the model file predicts
+exactly what diagnosis fitted.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gateway.errors import GatewayError
+from gateway.model.inputs import Column, DerivedInput, evaluate_inputs, hold_missing, initial_values
+from gateway.model.model import PathTF, ThermalModel
+from gateway.model.terms import FirstOrder, Term
+from gateway.prepare import prepare
+from gateway.recording import Recording
+
+
+class DiagnosisError(GatewayError):
+    """Diagnosis cannot proceed (no measured displacement, nothing to compare)."""
+
+    exit_code = 10
+
+
+@dataclass(frozen=True, slots=True)
+class Part:
+    """Input ``input`` (a factor or a derived input) through ``terms`` behind ``delay_s``."""
+
+    input: str
+    terms: tuple[Term, ...]
+    delay_s: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class Component:
+    """Parts that share one fitted gain: the gain scales every part's terms."""
+
+    parts: tuple[Part, ...]
+    label: str = ""
+
+
+def lag(tau_s: float) -> tuple[Term, ...]:
+    """One unit-gain first-order lag."""
+    return (FirstOrder(gain=1.0, tau_s=float(tau_s)),)
+
+
+@dataclass(kw_only=True)
+class Stack:
+    """Recordings prepared with the model and stacked: every array has one entry per window (N)."""
+
+    names: tuple[str, ...]
+    sources: tuple[str, ...]
+    dt_s: float
+    bounds: tuple[tuple[int, int], ...]
+    time_s: np.ndarray
+    present: np.ndarray
+    axes: tuple[str, ...]
+    factors: tuple[str, ...]
+    du: dict[str, np.ndarray]  # deviations of every model input, per recording from its start
+    raw: dict[str, np.ndarray]  # factor values (gaps filled by the policy)
+    extras: dict[str, np.ndarray]  # other numeric columns (NaN where a recording lacks them)
+    y: np.ndarray  # (A, N) measured displacement, NaN where not measured
+    base: np.ndarray  # (A, N) the model's prediction
+    contributions: np.ndarray  # (A, inputs, N) the model's prediction per input
+    notes: list[str] = field(default_factory=list)
+    _cache: dict[object, object] = field(default_factory=dict, repr=False)
+
+    @property
+    def n(self) -> int:
+        return len(self.time_s)
+
+    def rec_index(self) -> np.ndarray:
+        out = np.empty(self.n, dtype=int)
+        for r, (a, b) in enumerate(self.bounds):
+            out[a:b] = r
+        return out
+
+    def rel_time_s(self) -> np.ndarray:
+        """Seconds since each recording's first window."""
+        out = np.empty(self.n)
+        for a, b in self.bounds:
+            out[a:b] = self.time_s[a:b] - self.time_s[a]
+        return out
+
+    # -- inputs and responses ------------------------------------------------------------------------------
+    def input_du(self, name: str, chain: tuple[DerivedInput, ...] = ()) -> np.ndarray:
+        """Deviations of a model input, or of an input of ``chain`` (derived inputs, in order; cached)."""
+        if not any(d.name == name for d in chain):
+            return self.du[name]
+        key = ("inputs", chain)
+        if key not in self._cache:
+            self._cache[key] = self._derived(chain)
+        return self._cache[key][name]  # type: ignore[index]
+
+    def _derived(self, chain: tuple[DerivedInput, ...]) -> dict[str, np.ndarray]:
+        out = {d.name: np.zeros(self.n) for d in chain}
+        cols_needed = [d.column for d in chain if isinstance(d, Column)]
+        for a, b in self.bounds:
+            sig = {f: self.raw[f][a:b] for f in self.factors}
+            cols = {c: self.extras[c][a:b] for c in cols_needed}
+            initial = {f: float(v[0]) for f, v in sig.items()}
+            initial |= {c: float(hold_missing(v)[0]) for c, v in cols.items()}
+            values = evaluate_inputs(chain, sig, time_s=self.time_s[a:b], dt_s=self.dt_s, columns=cols,
+                                     initial=initial)
+            start = initial_values(chain, initial, time0_s=float(self.time_s[a]))
+            for d in chain:
+                out[d.name][a:b] = values[d.name] - start[d.name]
+        return out
+
+    def response(self, u: np.ndarray, terms: Sequence[Term], delay_s: float = 0.0) -> np.ndarray:
+        """Response of ``terms`` (with their gains) behind ``delay_s`` to ``u``, each recording from rest."""
+        out = np.zeros(self.n)
+        if not terms:
+            return out
+        path = PathTF(axis="x", factor="u", terms=tuple(terms), delay_s=delay_s)
+        for gain, sec in path.sections(self.dt_s):
+            if gain == 0.0:
+                continue
+            for a, b in self.bounds:
+                out[a:b] += gain * sec.filter(u[a:b])
+        return out
+
+    def column(self, comp: Component, chain: tuple[DerivedInput, ...] = ()) -> np.ndarray:
+        """The response of a component at unit gain (cached by its definition)."""
+        key = ("component", comp, chain)
+        if key not in self._cache:
+            total = np.zeros(self.n)
+            for p in comp.parts:
+                total += self.response(self.input_du(p.input, chain), p.terms, p.delay_s)
+            if len(self._cache) > 20000:  # a long search: keep memory bounded
+                self._cache.clear()
+            self._cache[key] = total
+        return self._cache[key]  # type: ignore[return-value]
+
+    def per_recording(self) -> list[np.ndarray]:
+        """Indicator columns, one per recording (free offsets: sensors are zeroed anywhere)."""
+        cols = []
+        for a, b in self.bounds:
+            c = np.zeros(self.n)
+            c[a:b] = 1.0
+            cols.append(c)
+        return cols
+
+    def decays(self, tau_s: float) -> list[np.ndarray]:
+        """exp(-t / tau) from each recording's start: an unknown initial state of a mode with ``tau_s``."""
+        t = self.rel_time_s()
+        cols = []
+        for a, b in self.bounds:
+            c = np.zeros(self.n)
+            c[a:b] = np.exp(-(t[a:b] + self.dt_s) / tau_s)
+            cols.append(c)
+        return cols
+
+    def ramps(self) -> list[np.ndarray]:
+        """Hours since each recording's start (a sensor's linear drift)."""
+        t = self.rel_time_s() / 3600.0
+        cols = []
+        for a, b in self.bounds:
+            c = np.zeros(self.n)
+            c[a:b] = t[a:b]
+            cols.append(c)
+        return cols
+
+
+def build_stack(model: ThermalModel, recordings: Sequence[Recording], *, gap_policy: str = "hold") -> Stack:
+    """Prepare every recording for ``model`` and stack them; checks that they can be compared at all."""
+    if not recordings:
+        raise DiagnosisError("no recordings given")
+    dts = {round(r.period_s, 9) for r in recordings}
+    if len(dts) != 1:
+        raise DiagnosisError("recordings have different window lengths: " +
+                             ", ".join(f"{r.name} {r.period_s:g} s" for r in recordings))
+    dt = recordings[0].period_s
+    dm = model.discretize(dt)
+    names, srcs, bounds, notes = [], [], [], []
+    times, present, ys, bases, contribs = [], [], [], [], []
+    du: dict[str, list[np.ndarray]] = {k: [] for k in model.input_names}
+    raw: dict[str, list[np.ndarray]] = {f: [] for f in model.factors}
+    extra_names = sorted({k for r in recordings for k in r.extras})
+    extras: dict[str, list[np.ndarray]] = {k: [] for k in extra_names}
+    start = 0
+    for rec in recordings:
+        p = prepare(rec, factors=model.factors, axes=model.axes, initial="first", gap_policy=gap_policy,
+                    inputs=model.inputs)
+        notes += [f"{p.name}: {n}" for n in p.notes]
+        names.append(p.name)
+        srcs.append(rec.source)
+        bounds.append((start, start + p.n))
+        start += p.n
+        times.append(p.time_s)
+        present.append(p.present)
+        ys.append(p.y)
+        c = dm.contributions(p.du)
+        contribs.append(c)
+        bases.append(c.sum(axis=1))
+        for j, k in enumerate(model.input_names):
+            du[k].append(p.du[j])
+        for j, f in enumerate(model.factors):
+            raw[f].append(p.du[j] + p.u0[j])
+        for k in extra_names:
+            extras[k].append(np.asarray(rec.extras[k], float) if k in rec.extras else np.full(p.n, np.nan))
+    y = np.concatenate(ys, axis=1)
+    if not np.isfinite(y).any():
+        raise DiagnosisError("no recording has measured displacement on any of the model's axes "
+                             f"({', '.join(model.axes)}): diagnosis compares measured with simulated")
+    return Stack(names=tuple(names), sources=tuple(srcs), dt_s=dt, bounds=tuple(bounds),
+                 time_s=np.concatenate(times), present=np.concatenate(present), axes=model.axes,
+                 factors=model.factors, du={k: np.concatenate(v) for k, v in du.items()},
+                 raw={k: np.concatenate(v) for k, v in raw.items()},
+                 extras={k: np.concatenate(v) for k, v in extras.items()}, y=y,
+                 base=np.concatenate(bases, axis=1), contributions=np.concatenate(contribs, axis=2),
+                 notes=notes)
+
+
+def log_grid(lo: float, hi: float, per_decade: float = 5.0) -> list[float]:
+    """Log-spaced values from ``lo`` to ``hi`` inclusive."""
+    if hi <= lo:
+        return [float(lo)]
+    n = max(2, math.ceil(math.log10(hi / lo) * per_decade) + 1)
+    return [float(v) for v in np.geomspace(lo, hi, n)]

@@ -1,0 +1,447 @@
+"""Hypotheses of missing physics, each a model extension of the same transfer-function type.
+
+A :class:`Hypothesis` has a physical name, an explanation a machine-tool engineer recognises, and per axis
+a grid of :class:`Setting` s: the nonlinear parameters (time constants, dead times, which existing path
+shape a new heat source shares) with the components whose gains are fitted linearly. Accepted, a setting
+becomes derived inputs and path terms (:mod:`gateway.diagnose.extend`).
+
+Where the physics says WHERE a missing heat source sits, the hypothesis reuses the identified path of the
+heat already known to be there, with one gain: iron eddy loss is generated in the motor iron beside the
+stator copper, so it moves the tool as the stator current's heat does; extra bearing friction from thermal
+preload moves it as the speed's (bearing friction) heat does. One gain instead of a free path makes these
+hypotheses cheap to test and tells them apart by their dynamics.
+
+Measurement artefacts (a sensor's drift) are hypotheses too, flagged ``artefact``: they enter the fits as
+nuisance columns and never the model.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gateway.diagnose.data import Component, Part, Stack, lag, log_grid
+from gateway.model.inputs import Column, DerivedInput, Flag, Periodic, Product, Sum
+from gateway.model.model import ThermalModel
+from gateway.model.terms import FirstOrder
+
+DAY_S = 86400.0
+#: names of recorded columns taken to be the room (ambient) temperature
+ROOM_NAMES = re.compile(r"(room|ambient|amb\b|ambi|umgebung|hall|air|t_?amb|t15)", re.IGNORECASE)
+#: a static path is a lag far shorter than any window: the periodic disturbance's lag is in its phase
+STATIC_TAU_S = 1.0
+
+
+@dataclass(frozen=True)
+class FactorInfo:
+    """What diagnosis needs to know about a profile factor."""
+
+    name: str
+    unit: str = ""
+    stat: str = "mean"
+    description: str = ""
+
+    @property
+    def group(self) -> str:
+        """The drive it belongs to: the name's first word (spindle, x, y, z)."""
+        return self.name.split("_")[0]
+
+    @property
+    def is_speed(self) -> bool:
+        return self.stat == "mean" and self.unit.lower().replace(" ", "") in ("rpm", "1/min", "min^-1", "r/min")
+
+    @property
+    def is_current_sq(self) -> bool:
+        return self.stat == "mean_square"
+
+    @property
+    def is_rotor(self) -> bool:
+        text = f"{self.name} {self.description}".lower()
+        return "rotor" in text or "secondary" in text or re.search(r"(^|_)i2(_|$)", self.name) is not None
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One point of a hypothesis's grid on one axis."""
+
+    params: tuple[tuple[str, float | str], ...]
+    components: tuple[Component, ...]
+    chain: tuple[DerivedInput, ...] = ()
+    #: nuisance columns: ("decay", tau_s) unknown initial state of a mode, ("ramp", 0) a sensor's drift
+    nuisance: tuple[tuple[str, float], ...] = ()
+    #: required sign of each component's gain (+1, -1; 0: any)
+    signs: tuple[int, ...] = ()
+    #: largest plausible |gain| of each component (inf: no bound)
+    limits: tuple[float, ...] = ()
+
+    def param(self, name: str) -> float | str | None:
+        return dict(self.params).get(name)
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """A named piece of missing physics (or a measurement artefact) with its grid per axis."""
+
+    key: str
+    family: str
+    title: str
+    explanation: str
+    settings: dict[str, list[Setting]] = field(hash=False, compare=False)
+    artefact: bool = False
+    #: nested simpler hypotheses: preferred unless this one is significantly better
+    simpler: tuple[str, ...] = ()
+    #: machine-wide parameters (a transport delay, a bearing's time constant): one value for every axis
+    shared: tuple[str, ...] = ()
+
+    @property
+    def complexity(self) -> int:
+        """Free parameters: the most gains of any setting plus every parameter the grid varies."""
+        n = 0
+        for grid in self.settings.values():
+            gains = max((len(s.components) for s in grid), default=0)
+            varied = {k for s in grid for k, _ in s.params
+                      if len({dict(t.params).get(k) for t in grid}) > 1}
+            n = max(n, gains + len(varied))
+        return n
+
+
+def _tau_text(t: float) -> str:
+    return f"{t / 60:.3g} min" if t < 5400 else f"{t / 3600:.3g} h"
+
+
+def safe_name(text: str, taken: Sequence[str]) -> str:
+    """A model input name (letters, digits, _) for a recorded column, not clashing with ``taken``."""
+    name = re.sub(r"[^A-Za-z0-9_]+", "_", text).strip("_") or "column"
+    if not name[0].isalpha():
+        name = "c_" + name
+    while name in taken:
+        name += "_"
+    return name
+
+
+def catalogue(stack: Stack, model: ThermalModel, factors: Sequence[FactorInfo], *,
+              families: Sequence[str] | None = None) -> list[Hypothesis]:
+    """Every hypothesis that can be tested on these recordings with this model and profile."""
+    info = {f.name: f for f in factors}
+    for f in model.factors:
+        info.setdefault(f, FactorInfo(name=f, unit=model.units.get(f, "")))
+    span = [float(np.nanmax(np.abs(stack.du[f]))) if stack.n else 0.0 for f in model.factors]
+    active = [f for f, s in zip(model.factors, span, strict=True) if s > 0]
+    ctx = _Ctx(stack=stack, model=model, info=info, active=active)
+    makers = {
+        "room_recorded": _room_recorded, "recorded_signal": _recorded_signal, "room_daily": _room_daily,
+        "eddy_loss": _eddy, "bearing_preload": _preload, "cabinet": _cabinet, "chiller": _chiller,
+        "slow_mode": _slow_mode, "higher_order": _higher_order, "dead_time": _dead_time,
+        "sensor_drift": _sensor_drift,
+    }
+    out: list[Hypothesis] = []
+    for fam, make in makers.items():
+        if families is None or fam in families:
+            out += [h for h in make(ctx) if any(h.settings.values())]
+    return out
+
+
+@dataclass
+class _Ctx:
+    stack: Stack
+    model: ThermalModel
+    info: dict[str, FactorInfo]
+    active: list[str]
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        return self.model.axes
+
+    @property
+    def dt(self) -> float:
+        return self.stack.dt_s
+
+    @property
+    def span_s(self) -> float:
+        return max(b - a for a, b in self.stack.bounds) * self.dt
+
+    def base_terms(self, axis: str, factor: str) -> tuple:
+        return self.model.path(axis, factor).terms
+
+    def identification_length_s(self) -> float:
+        """How long the identification runs were (model info), else its slowest time constant."""
+        length = self.model.info.get("longest_experiment_s")
+        if isinstance(length, int | float) and length > 0:
+            return float(length)
+        taus = [t for p in self.model.paths.values() for term in p.terms for t in term.time_constants_s]
+        return max(taus, default=12 * 3600.0)
+
+    def taken(self) -> list[str]:
+        return list(self.model.input_names)
+
+
+# ---------------------------------------------------------------------------------------------- families --
+def _lag_pairs(lo1: float, hi1: float, lo2: float, hi2: float) -> list[tuple[float, float | None]]:
+    """Single lags and pairs (fast, slow) at least a factor 3 apart."""
+    fast = log_grid(lo1, hi1, 3)
+    slow = log_grid(lo2, hi2, 3)
+    out: list[tuple[float, float | None]] = [(t, None) for t in log_grid(lo1, hi2, 5)]
+    out += [(a, b) for a in fast for b in slow if b >= 3 * a]
+    return out
+
+
+def _column_settings(ctx: _Ctx, col: str) -> list[Setting]:
+    inp = Column(name=safe_name(col, ctx.taken()), column=col, unit="", note=f"recorded column {col}")
+    out = []
+    for t1, t2 in _lag_pairs(ctx.dt, 4 * 3600.0, 2 * 3600.0, max(3 * DAY_S, ctx.span_s)):
+        comps = [Component((Part(inp.name, lag(t1)),), f"lag {_tau_text(t1)}")]
+        params: list[tuple[str, float | str]] = [("tau_s", t1)]
+        nuis = [("decay", t1)]
+        if t2 is not None:
+            comps.append(Component((Part(inp.name, lag(t2)),), f"lag {_tau_text(t2)}"))
+            params = [("tau_fast_s", t1), ("tau_slow_s", t2)]
+            nuis.append(("decay", t2))
+        out.append(Setting(params=tuple(params), components=tuple(comps), chain=(inp,), nuisance=tuple(nuis)))
+    return out
+
+
+def _usable_columns(ctx: _Ctx) -> list[str]:
+    out = []
+    for col, v in ctx.stack.extras.items():
+        ok = np.isfinite(v)
+        if ok.sum() < 0.5 * len(v) or np.nanstd(v) == 0:
+            continue
+        d = np.diff(v[ok])
+        if np.all(d >= 0) and np.allclose(v[ok], np.round(v[ok])):
+            continue  # a counter (row index, day number): not a physical signal
+        out.append(col)
+    return out
+
+
+def _room_recorded(ctx: _Ctx) -> list[Hypothesis]:
+    return [Hypothesis(
+        key=f"room_recorded:{col}", family="room_recorded", title=f"room temperature (recorded as {col})",
+        explanation=(f"The workshop air ({col}) heats and cools the whole structure through its surfaces; the "
+                     "model has no input for it. It acts through lags (hours for a casting), so the "
+                     "displacement follows the room late and smoothed."),
+        settings={a: _column_settings(ctx, col) for a in ctx.axes})
+        for col in _usable_columns(ctx) if ROOM_NAMES.search(col)]
+
+
+def _recorded_signal(ctx: _Ctx) -> list[Hypothesis]:
+    return [Hypothesis(
+        key=f"recorded_signal:{col}", family="recorded_signal", title=f"recorded signal {col} (meaning unknown)",
+        explanation=(f"Column {col} is recorded but not a model input; if the displacement follows it "
+                     "through a lag, it carries heat (or is a temperature of a part) the factors miss. "
+                     "Its meaning must be checked on the machine before it is used in production."),
+        settings={a: _column_settings(ctx, col) for a in ctx.axes})
+        for col in _usable_columns(ctx) if not ROOM_NAMES.search(col)]
+
+
+def _room_daily(ctx: _Ctx) -> list[Hypothesis]:
+    if ctx.span_s < 0.75 * DAY_S:
+        return []  # less than most of a day: a daily cycle cannot be told from a drift
+    s = Periodic(name="day_sin", period_s=DAY_S, phase="sin", note="time of day (daily room cycle)")
+    c = Periodic(name="day_cos", period_s=DAY_S, phase="cos", note="time of day (daily room cycle)")
+    static = (FirstOrder(gain=1.0, tau_s=STATIC_TAU_S),)
+    setting = Setting(params=(("period_h", 24.0),), chain=(s, c),
+                      components=(Component((Part(s.name, static),), "sin"),
+                                  Component((Part(c.name, static),), "cos")))
+    return [Hypothesis(
+        key="room_daily", family="room_daily", title="daily room-temperature cycle (not recorded)",
+        explanation=("The workshop warms by day and cools by night; without a thermometer the model can "
+                     "still take it as a 24 h periodic disturbance: in its periodic steady state any lag "
+                     "only shifts the phase, so a sine and a cosine of the time of day describe it."),
+        settings={a: [setting] for a in ctx.axes})]
+
+
+def _motor_shapes(ctx: _Ctx, axis: str, speed: str, *, stator_only: bool = False) -> list[str]:
+    """Current factors of the speed's drive with a path on ``axis``: where the motor's heat acts."""
+    group = ctx.info[speed].group
+    return [f for f in ctx.model.factors if ctx.info[f].group == group and ctx.info[f].is_current_sq
+            and ctx.base_terms(axis, f) and not (stator_only and ctx.info[f].is_rotor)]
+
+
+def _eddy(ctx: _Ctx) -> list[Hypothesis]:
+    out = []
+    for n in (f for f in ctx.active if ctx.info[f].is_speed):
+        sq = Product(name=safe_name(f"{n}_sq", ctx.taken()), of=(n, n), unit=f"({ctx.info[n].unit})^2",
+                     note=f"{n} squared: iron eddy-current loss ~ speed^2")
+        settings: dict[str, list[Setting]] = {}
+        for a in ctx.axes:
+            shapes = _motor_shapes(ctx, a, n)
+            grid = [Setting(params=(("path_shape", f),), chain=(sq,),
+                            components=(Component((Part(sq.name, ctx.base_terms(a, f)),), f"as {f}"),), signs=(1,))
+                    for f in shapes]
+            if not shapes:  # no motor path on this axis: a free lag
+                grid = [Setting(params=(("tau_s", t),), chain=(sq,), components=(Component((Part(sq.name, lag(t)),)),))
+                        for t in log_grid(5 * ctx.dt, 12 * 3600.0, 4)]
+            settings[a] = grid
+        out.append(Hypothesis(
+            key=f"eddy_loss:{n}", family="eddy_loss", title=f"iron eddy-current loss ~ {n}^2",
+            explanation=("Eddy currents in the motor's iron dissipate heat ~ speed^2 (hysteresis ~ speed is "
+                         "already in the speed factor); the paper neglected it. The heat is made in the motor "
+                         "iron beside the stator winding, so it moves the tool as the motor current's heat does."),
+            settings=settings))
+    return out
+
+
+def _preload(ctx: _Ctx) -> list[Hypothesis]:
+    out = []
+    for n in (f for f in ctx.active if ctx.info[f].is_speed):
+        settings: dict[str, list[Setting]] = {}
+        for a in ctx.axes:
+            shape = ctx.base_terms(a, n)
+            grid = []
+            if shape:
+                for tau in log_grid(ctx.dt, 2 * 3600.0, 4):
+                    inp = Product(name=safe_name(f"{n}_x_lag{round(tau)}s", ctx.taken()), of=(n, n), lag_s=(0.0, tau),
+                                  unit=f"({ctx.info[n].unit})^2",
+                                  note=f"{n} times its lag ({_tau_text(tau)}): bearing friction growing with heat")
+                    grid.append(Setting(params=(("bearing_tau_s", tau),), chain=(inp,), signs=(1,),
+                                        components=(Component((Part(inp.name, shape),), f"as {n}"),)))
+            settings[a] = grid
+        out.append(Hypothesis(
+            key=f"bearing_preload:{n}", family="bearing_preload",
+            title=f"bearing preload growing with heat (nonlinear gain of {n})",
+            explanation=("The shaft and inner rings run hotter than the housing, the preload rises and the "
+                         "bearing friction with it: the speed path's heat is multiplied by (1 + k dT), dT the "
+                         "bearing's over-temperature, a lag of the speed's own heat. Same place as the bearing "
+                         "friction, so the same path shape."),
+            settings=settings, shared=("bearing_tau_s",)))
+    return out
+
+
+def _cabinet(ctx: _Ctx) -> list[Hypothesis]:
+    currents = [f for f in ctx.model.factors if ctx.info[f].is_current_sq and not ctx.info[f].is_rotor]
+    if len(currents) < 2 or not any(f in ctx.active for f in currents):
+        return []
+    inp = Sum(name=safe_name("amplifier_i_sq", ctx.taken()), of=tuple(currents), unit="A^2",
+              note="sum of every amplifier current squared: control cabinet and servo amplifier losses")
+    grid = []
+    for t1, t2 in _lag_pairs(5 * ctx.dt, 4 * 3600.0, 2 * 3600.0, 2 * DAY_S):
+        comps = [Component((Part(inp.name, lag(t1)),), f"lag {_tau_text(t1)}")]
+        params: list[tuple[str, float | str]] = [("tau_s", t1)]
+        if t2 is not None:
+            comps.append(Component((Part(inp.name, lag(t2)),), f"lag {_tau_text(t2)}"))
+            params = [("tau_fast_s", t1), ("tau_slow_s", t2)]
+        grid.append(Setting(params=tuple(params), components=tuple(comps), chain=(inp,)))
+    return [Hypothesis(
+        key="cabinet", family="cabinet", title="control cabinet / servo amplifier heat ~ sum of I^2",
+        explanation=("The amplifiers lose heat ~ the sum of their motor currents squared, in a cabinet bolted "
+                     "to the column; it warms the column through a slow lag. No factor carries it: every "
+                     "current factor heats its own motor, not the cabinet."),
+        settings={a: grid for a in ctx.axes}, shared=("tau_s", "tau_fast_s", "tau_slow_s"))]
+
+
+def _chiller(ctx: _Ctx) -> list[Hypothesis]:
+    out = []
+    for n in (f for f in ctx.active if ctx.info[f].is_speed):
+        flag = Flag(name=safe_name(f"{n}_on", ctx.taken()), of=n, above=1.0, note=f"1 while {n} > 1")
+        group = ctx.info[n].group
+        # the motor's temperature, for the heat the chiller takes: a lag of the speed or of a motor current
+        proxies = [n] + [f for f in ctx.model.factors if ctx.info[f].group == group and ctx.info[f].is_current_sq
+                         and not ctx.info[f].is_rotor]
+        settings: dict[str, list[Setting]] = {}
+        for a in ctx.axes:
+            grid = []
+            for f in _motor_shapes(ctx, a, n, stator_only=True):
+                shape = ctx.base_terms(a, f)
+                grid.append(Setting(params=(("path_shape", f), ("proxy", "none"), ("motor_tau_s", 0.0)),
+                                    chain=(flag,), signs=(-1,),
+                                    components=(Component((Part(flag.name, shape),), f"on, as {f}"),)))
+                for proxy in proxies:
+                    for tau in log_grid(2 * ctx.dt, 6 * 3600.0, 3):
+                        prod = Product(name=safe_name(f"{n}_on_x_{proxy}_lag{round(tau)}s", ctx.taken()),
+                                       of=(flag.name, proxy), lag_s=(0.0, tau), unit=ctx.info[proxy].unit,
+                                       note=f"running flag times a lag ({_tau_text(tau)}) of {proxy}: motor "
+                                            "temperature")
+                        grid.append(Setting(params=(("path_shape", f), ("proxy", proxy), ("motor_tau_s", tau)),
+                                            chain=(flag, prod), signs=(-1,),
+                                            components=(Component((Part(prod.name, shape),), f"as {f}"),)))
+            settings[a] = grid
+        out.append(Hypothesis(
+            key=f"chiller:{n}", family="chiller", title=f"coolant chiller switching with the spindle ({n} > 0)",
+            explanation=("A chiller (or coolant pump) that runs only with the spindle takes heat out of the motor "
+                         "~ its temperature over the coolant's while it runs, and nothing when it stops: a "
+                         "switched heat sink at the motor, so the same path shape as the motor current's heat."),
+            settings=settings, shared=("proxy", "motor_tau_s")))
+    return out
+
+
+def _extra_mode(ctx: _Ctx, f: str, taus: Sequence[float]) -> dict[str, list[Setting]]:
+    settings = {}
+    for a in ctx.axes:
+        base = ctx.base_terms(a, f)
+        grid = []
+        for tau in taus:
+            comps = [Component((Part(f, lag(tau)),), f"mode {_tau_text(tau)}")]
+            if base:
+                comps.insert(0, Component((Part(f, base),), "gain correction"))
+            grid.append(Setting(params=(("tau_s", tau),), components=tuple(comps),
+                                limits=(1.0, math.inf) if base else (math.inf,)))
+        settings[a] = grid
+    return settings
+
+
+def _slow_mode(ctx: _Ctx) -> list[Hypothesis]:
+    lo = ctx.identification_length_s()
+    taus = log_grid(lo, max(20 * DAY_S, 4 * lo), 4)
+    return [Hypothesis(
+        key=f"slow_mode:{f}", family="slow_mode",
+        title=f"slow thermal mode beyond the identification runs (heat of {f})",
+        explanation=(f"A massive part (column base, bed, foundation) soaks up the heat of {f} over many hours; "
+                     f"identification runs of {lo / 3600:.3g} h cannot see a mode slower than themselves (the "
+                     "paper saw an offset long after the spindle stopped). One slow mode on the path."),
+        settings=_extra_mode(ctx, f, taus), shared=("tau_s",)) for f in ctx.active]
+
+
+def _higher_order(ctx: _Ctx) -> list[Hypothesis]:
+    lo = ctx.identification_length_s()
+    taus = [t for t in log_grid(ctx.dt, lo, 4) if t < lo]
+    return [Hypothesis(
+        key=f"higher_order:{f}", family="higher_order", title=f"higher order on the path of {f}",
+        explanation=(f"The path from {f} has one more thermal mode than identified (heat reaching a second "
+                     "part), within the time scale of the identification runs; the identified terms keep "
+                     "their shape, their gain may change."),
+        settings=_extra_mode(ctx, f, taus)) for f in ctx.active]
+
+
+def _dead_time(ctx: _Ctx) -> list[Hypothesis]:
+    out = []
+    delays = [d * 60.0 for d in (2, 5, 10, 15, 20, 30, 45, 60, 90)]
+    delays = [d for d in delays if d >= ctx.dt]
+    for f in ctx.active:
+        settings = {}
+        for a in ctx.axes:
+            base = ctx.base_terms(a, f)
+            grid = []
+            for d in delays:
+                for tau in log_grid(5 * ctx.dt, 12 * 3600.0, 3):
+                    comps = [Component((Part(f, lag(tau), d),), f"delayed mode {_tau_text(tau)}")]
+                    if base:
+                        comps.insert(0, Component((Part(f, base),), "gain correction"))
+                    grid.append(Setting(params=(("delay_s", d), ("tau_s", tau)), components=tuple(comps),
+                                        limits=(1.0, math.inf) if base else (math.inf,)))
+                if base:  # a share of the identified path itself arrives late
+                    grid.append(Setting(params=(("delay_s", d), ("tau_s", "path")),
+                                        components=(Component((Part(f, base, d),), "delayed share"),
+                                                    Component((Part(f, base),), "gain correction")),
+                                        limits=(1.5, 1.5)))
+            settings[a] = grid
+        out.append(Hypothesis(
+            key=f"dead_time:{f}", family="dead_time", title=f"dead time on the heat of {f} (transport delay)",
+            explanation=(f"Part of the heat of {f} arrives late: coolant or oil carries it away and releases it "
+                         "elsewhere after a transport delay, or it crosses a long conduction path. A dead time "
+                         "on a path, beside the identified immediate part."),
+            settings=settings, simpler=(f"higher_order:{f}", f"slow_mode:{f}"), shared=("delay_s",)))
+    return out
+
+
+def _sensor_drift(ctx: _Ctx) -> list[Hypothesis]:
+    setting = Setting(params=(), components=(), nuisance=(("ramp", 0.0),))
+    return [Hypothesis(
+        key="sensor_drift", family="sensor_drift", title="displacement sensor drift (measurement artefact)",
+        explanation=("The displacement reading drifts linearly in time whatever the machine does (the sensor's "
+                     "own temperature, a creeping fixture): not machine physics, so it is removed from the "
+                     "fits and kept out of the model."),
+        settings={a: [setting] for a in ctx.axes}, artefact=True)]

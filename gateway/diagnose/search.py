@@ -1,0 +1,397 @@
+"""Greedy forward selection of hypotheses on one axis, judged on held-out blocks of time.
+
+Each round cross-validates every hypothesis not yet accepted against the current model (the identified
+model, the hypotheses accepted so far with their gains refitted, the measurement artefacts and a free
+offset per recording). A hypothesis can be accepted when
+
+1. its held-out error is lower with a Holm-corrected one-sided p below ``alpha`` over all the
+   hypotheses of the round (false-positive control across many hypotheses and their grids),
+2. the gain is relevant: held-out SSE down by at least ``min_gain`` (a share), and its contribution's RMS
+   at least ``min_effect_um`` (both say what "significant" means in micrometres, not only in statistics),
+3. its parameters are physically plausible (signs and sizes of gains; the grids bound time constants and
+   dead times to physical ranges).
+
+Of those, the one with the lowest held-out error is accepted, unless a nested simpler hypothesis (a
+dead time's plain extra mode) passes too and is not significantly worse. Artefacts are accepted by the
+same rules but become nuisance columns, not model terms. Rounds go on while held-out error keeps falling
+significantly.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gateway.diagnose.data import Stack
+from gateway.diagnose.hypotheses import Hypothesis, Setting
+from gateway.diagnose.select import Fold, GridFit, choose, grid_scores, holm, jackknife_sd, one_sided_p
+
+
+@dataclass(frozen=True, kw_only=True)
+class Options:
+    """Decision rules of the search (see the module docstring)."""
+
+    alpha: float = 0.05  # family-wise error rate of one round (Holm over its hypotheses)
+    alpha_axis: float = 0.05  # an axis joins an accepted hypothesis when its own blocks improve at this level
+    min_gain: float = 0.1  # share of an axis's held-out squared error the hypothesis must remove
+    min_effect_share: float = 0.02  # its contribution's RMS, as a share of the axis's peak |displacement|
+    min_effect_um: float = 0.0  # ... and at least this many micrometres
+    blocks: int = 12
+    max_rounds: int = 4
+
+
+@dataclass(kw_only=True)
+class AxisEvidence:
+    """How one hypothesis did on one axis in one round."""
+
+    axis: str
+    sse_before: float
+    sse_after: float
+    p: float
+    setting: Setting | None
+    gains: np.ndarray
+    gains_sd: np.ndarray
+    params_sd: dict[str, float]
+    effect_rms_um: float
+    relevance_um: float
+    fit: GridFit
+    included: bool = False
+    note: str = ""
+
+    @property
+    def gain(self) -> float:
+        """Share of the axis's held-out squared error removed."""
+        return 1.0 - self.sse_after / self.sse_before if self.sse_before > 0 else 0.0
+
+
+@dataclass(kw_only=True)
+class Trial:
+    """One hypothesis tried in one round: its evidence per axis and its verdict."""
+
+    hypothesis: Hypothesis
+    round: int
+    evidence: dict[str, AxisEvidence]
+    p: float
+    p_holm: float = math.nan
+    verdict: str = ""
+
+    @property
+    def score(self) -> float:
+        """Share of the held-out squared error (um^2, pooled over all axes) removed on the axes it joins.
+
+        Pooled, not per axis: every sensor has the same noise, so a micrometre is worth the same on every
+        axis and an axis with a tenth of a micrometre of error cannot outvote one with several.
+        """
+        total = sum(e.sse_before for e in self.evidence.values())
+        gained = sum(e.sse_before - e.sse_after for e in self.evidence.values() if e.included)
+        return gained / total if total > 0 else 0.0
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        return tuple(a for a, e in self.evidence.items() if e.included)
+
+
+@dataclass(kw_only=True)
+class AxisHeld:
+    """Held-out predictions of one axis's residual (each block from a fit on the others)."""
+
+    axis: str
+    rows: np.ndarray  # windows (indices into the stack) that were measured
+    block: np.ndarray
+    before: np.ndarray  # offsets only: the identified model as it is
+    after: np.ndarray  # with the accepted physics and the artefacts removed
+    physics: np.ndarray  # with the accepted physics only
+
+
+@dataclass(kw_only=True)
+class Term:
+    """An accepted hypothesis on one axis, refitted on all data together with the others."""
+
+    trial: Trial
+    axis: str
+    setting: Setting
+    gains: np.ndarray
+    contribution: np.ndarray  # its displacement (um) in every window of the stack
+
+
+@dataclass(kw_only=True)
+class SearchResult:
+    """Every trial, the accepted ones in order, held-out predictions and the final terms per axis."""
+
+    trials: list[Trial]
+    accepted: list[Trial]
+    held: dict[str, AxisHeld]
+    terms: dict[str, list[Term]] = field(default_factory=dict)
+    sse_rounds: dict[str, list[float]] = field(default_factory=dict)
+
+
+def setting_columns(stack: Stack, setting: Setting) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """(physics columns, nuisance columns) of a setting, over every window of the stack."""
+    phys = [stack.column(c, setting.chain) for c in setting.components]
+    nuis: list[np.ndarray] = []
+    for kind, value in setting.nuisance:
+        nuis += stack.decays(value) if kind == "decay" else stack.ramps()
+    return phys, nuis
+
+
+def _design(stack: Stack, setting: Setting, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    phys, nuis = setting_columns(stack, setting)
+    cols = phys + nuis
+    X = np.column_stack([c[rows] for c in cols]) if cols else np.zeros((len(rows), 0))
+    signs = np.zeros(len(cols))
+    signs[: len(setting.signs)] = setting.signs
+    limits = np.full(len(cols), np.inf)
+    limits[: len(setting.limits)] = setting.limits
+    return X, signs, limits
+
+
+@dataclass
+class _Axis:
+    index: int
+    name: str
+    rows: np.ndarray
+    r: np.ndarray
+    block: np.ndarray
+    fixed: list[np.ndarray]
+    relevance_um: float
+    artefacts: list[np.ndarray]
+
+
+def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
+           artefacts: dict[str, list[np.ndarray]], options: Options,
+           progress: Callable[[str], None] | None = None) -> SearchResult:
+    """Forward selection over all axes; ``block`` gives each window's block (-1: not used)."""
+    axes: list[_Axis] = []
+    offsets = stack.per_recording()
+    for i, name in enumerate(stack.axes):
+        ok = (block != -1) & np.isfinite(stack.y[i])
+        rows = np.flatnonzero(ok)
+        if len(rows) < 8 or len(np.unique(block[rows][block[rows] >= 0])) < 3:
+            continue
+        r = (stack.y[i] - stack.base[i])[rows]
+        arts = [c for c in artefacts.get(name, [])]
+        fixed = [c[rows] for c in offsets if np.any(c[rows])] + [c[rows] for c in arts]
+        meas = stack.y[i][rows] - np.median(stack.y[i][rows][:10])
+        peak = float(np.max(np.abs(np.concatenate([meas, stack.base[i][rows]]))))
+        rel = max(options.min_effect_share * peak, options.min_effect_um)
+        axes.append(_Axis(i, name, rows, r, block[rows], fixed, rel, arts))
+    trials: list[Trial] = []
+    accepted: list[Trial] = []
+    remaining = list(hypotheses)
+    sse_rounds: dict[str, list[float]] = {a.name: [] for a in axes}
+    for rnd in range(1, options.max_rounds + 1):
+        round_trials = []
+        for h in remaining:
+            if progress:
+                progress(f"round {rnd}: {h.key}")
+            ev = _evidence(stack, [ax for ax in axes if h.settings.get(ax.name)], h)
+            if ev:
+                # present if it improves at least one axis: Bonferroni over the axes
+                p = min(1.0, len(ev) * min(e.p for e in ev.values()))
+                round_trials.append(Trial(hypothesis=h, round=rnd, evidence=ev, p=p))
+        for ax in axes:
+            first = next((t.evidence[ax.name] for t in round_trials if ax.name in t.evidence), None)
+            if first is not None:
+                sse_rounds[ax.name].append(first.sse_before)
+        if not round_trials:
+            break
+        for t, p in zip(round_trials, holm([t.p for t in round_trials]), strict=True):
+            t.p_holm = p
+            t.verdict = _judge(t, options)
+        trials += round_trials
+        passing = [t for t in round_trials if t.verdict == "passes"]
+        if not passing:
+            break
+        chosen = _occam(passing, round_trials, options)
+        for t in passing:
+            t.verdict = "accepted" if t is chosen else f"passes, but {chosen.hypothesis.key} explains more"
+        accepted.append(chosen)
+        for ax in axes:
+            e = chosen.evidence.get(ax.name)
+            if e is not None and e.included and e.setting is not None:
+                phys, nuis = setting_columns(stack, e.setting)
+                ax.fixed += [c[ax.rows] for c in phys + nuis]
+        remaining = [h for h in remaining if h is not chosen.hypothesis]
+    held = {ax.name: _held(stack, ax, offsets, accepted) for ax in axes}
+    terms = {ax.name: _final_terms(stack, ax, offsets, accepted) for ax in axes}
+    return SearchResult(trials=trials, accepted=accepted, held=held, terms=terms, sse_rounds=sse_rounds)
+
+
+def _final_terms(stack: Stack, ax: _Axis, offsets: Sequence[np.ndarray], accepted: Sequence[Trial]) -> list[Term]:
+    """Every accepted hypothesis of this axis, gains refitted jointly on all measured windows."""
+    chosen = [(t, t.evidence[ax.name].setting) for t in accepted
+              if ax.name in t.evidence and t.evidence[ax.name].included]
+    if not chosen:
+        return []
+    cols = [c[ax.rows] for c in offsets if np.any(c[ax.rows])] + [c[ax.rows] for c in ax.artefacts]
+    spans = []
+    for _, s in chosen:
+        phys, nuis = setting_columns(stack, s)
+        spans.append((len(cols), len(phys)))
+        cols += [c[ax.rows] for c in phys + nuis]
+    D = np.column_stack(cols)
+    scale = np.linalg.norm(D, axis=0)
+    scale[scale == 0] = 1.0
+    beta = np.linalg.solve((D / scale).T @ (D / scale) + 1e-9 * np.eye(D.shape[1]), (D / scale).T @ ax.r) / scale
+    out = []
+    for (t, s), (start, n) in zip(chosen, spans, strict=True):
+        g = beta[start: start + n]
+        phys, _ = setting_columns(stack, s)
+        contrib = sum((gi * c for gi, c in zip(g, phys, strict=True)), np.zeros(stack.n))
+        out.append(Term(trial=t, axis=ax.name, setting=s, gains=g, contribution=contrib))
+    return out
+
+
+def _evidence(stack: Stack, axes: Sequence[_Axis], h: Hypothesis) -> dict[str, AxisEvidence]:
+    """Cross-validate ``h`` on every axis, machine-wide parameters chosen jointly over the axes."""
+    scores = {}
+    for ax in axes:
+        fold = Fold(r=ax.r, block=ax.block, fixed=np.column_stack(ax.fixed))
+        designs = [_design(stack, s, ax.rows) for s in h.settings[ax.name]]
+        scores[ax.name] = grid_scores(fold, [d[0] for d in designs], signs=[d[1] for d in designs],
+                                      limits=[d[2] for d in designs])
+    keys = None
+    if h.shared:
+        keys = {ax.name: [tuple(s.param(k) for k in h.shared) for s in h.settings[ax.name]] for ax in axes}
+    fits = choose(scores, keys)
+    out = {}
+    for ax in axes:
+        grid = h.settings[ax.name]
+        fit = fits[ax.name]
+        best = grid[fit.best] if fit.admissible else None
+        n_phys = len(best.components) if best is not None else 0
+        gains = fit.gains[:n_phys]
+        effect = 0.0
+        if best is not None:
+            phys, _ = setting_columns(stack, best)
+            contrib = sum((g * c[ax.rows] for g, c in zip(gains, phys, strict=True)), np.zeros(len(ax.rows)))
+            effect = float(np.std(contrib))
+        before = float(fit.without.sum()) if fit.without is not None else math.nan
+        out[ax.name] = AxisEvidence(
+            axis=ax.name, sse_before=before, sse_after=float(fit.held.sum()), p=one_sided_p(fit.without - fit.held),
+            setting=best, gains=gains, gains_sd=_gains_sd(fit, n_phys),
+            params_sd=_params_sd(fit, grid) if best else {}, effect_rms_um=effect, relevance_um=ax.relevance_um,
+            fit=fit)
+    return out
+
+
+def _judge(t: Trial, o: Options) -> str:
+    """Decide which axes join and whether the hypothesis passes; notes say why an axis does not."""
+    for e in t.evidence.values():
+        if e.setting is None:
+            e.note = "no plausible setting"
+        elif not e.p < o.alpha_axis:
+            e.note = f"blocks do not improve consistently (p = {e.p:.2g})"
+        elif e.gain < o.min_gain:
+            e.note = f"held-out error down only {100 * e.gain:.1f} % (< {100 * o.min_gain:.0f} %)"
+        elif not t.hypothesis.artefact and e.effect_rms_um < e.relevance_um:
+            e.note = f"contribution {e.effect_rms_um:.3g} um RMS below the relevance bound {e.relevance_um:.3g} um"
+        else:
+            e.included = True
+    if not t.p_holm < o.alpha:
+        return f"not significant (Holm p = {t.p_holm:.2g})"
+    if not t.axes:
+        notes = "; ".join(f"{a}: {e.note}" for a, e in t.evidence.items())
+        return f"significant overall but on no axis relevant: {notes}"
+    return "passes"
+
+
+def _occam(passing: Sequence[Trial], tried: Sequence[Trial], o: Options) -> Trial:
+    """The simplest passing hypothesis, replaced by a richer one only when that one is significantly better.
+
+    Walks from the fewest free parameters up (ties: the larger held-out gain first). Physics that says
+    where a heat source sits or what shape an input has gives a hypothesis few parameters; a generic
+    extra mode or dead time on a path fits nearly anything the spindle does, so it has to earn its
+    parameters on the held-out blocks. A hypothesis that nests simpler ones (a dead time nests the plain
+    extra mode) must also beat each of them significantly, passing or not.
+    """
+    by_key = {t.hypothesis.key: t for t in tried}
+
+    def earns(t: Trial) -> bool:
+        return all(one_sided_p(_pair(by_key[k], t)) < o.alpha for k in t.hypothesis.simpler if k in by_key)
+
+    ordered = sorted((t for t in passing if earns(t)), key=lambda t: (t.hypothesis.complexity, -t.score))
+    if not ordered:
+        return max(passing, key=lambda t: t.score)
+    current = ordered[0]
+    for t in ordered[1:]:
+        if t.score > current.score and one_sided_p(_pair(current, t)) < o.alpha:
+            current = t
+    return current
+
+
+def _pair(a: Trial, b: Trial) -> np.ndarray:
+    """Per block, how much better ``b`` predicts than ``a`` (held-out SSE in um^2 pooled over the axes)."""
+    d = np.zeros(0)
+    for ax in set(a.evidence) | set(b.evidence):
+        ea, eb = a.evidence.get(ax), b.evidence.get(ax)
+        ref = ea or eb
+        held_a = ea.fit.held if ea is not None and ea.included else ref.fit.without
+        held_b = eb.fit.held if eb is not None and eb.included else ref.fit.without
+        d = held_a - held_b if not d.size else d + held_a - held_b
+    return d
+
+
+def _gains_sd(fit: GridFit, n_phys: int) -> np.ndarray:
+    """Jackknife sd of the gains over the folds that chose the same setting as all the data did."""
+    same = fit.theta_fold == fit.best
+    if same.sum() < 3:
+        same = fit.theta_fold >= 0
+    g = fit.gains_fold[same][:, :n_phys] if fit.gains_fold.ndim == 2 else np.zeros((0, n_phys))
+    return jackknife_sd(g) if len(g) >= 2 else np.full(n_phys, math.nan)
+
+
+def _params_sd(fit: GridFit, grid: Sequence[Setting]) -> dict[str, float]:
+    """Jackknife spread of the numeric parameters over the folds, as a factor (time constants: log scale)."""
+    out = {}
+    chosen = [grid[i] for i in fit.theta_fold if i >= 0]
+    for k, v in grid[fit.best].params:
+        if not isinstance(v, float) or v <= 0:
+            continue
+        num = np.array([float(x) for x in (s.param(k) for s in chosen) if isinstance(x, float) and x > 0])
+        if len(num) >= 2:
+            out[k] = float(np.exp(jackknife_sd(np.log(num)[:, None])[0]))
+    return out
+
+
+def _held(stack: Stack, ax: _Axis, offsets: Sequence[np.ndarray], accepted: Sequence[Trial]) -> AxisHeld:
+    """Held-out residual predictions: offsets only; with everything accepted; with accepted physics only.
+
+    Each block is predicted from a fit on the other blocks, every accepted hypothesis at the setting its
+    own fold chose when it was accepted (so its search stays inside the fold).
+    """
+    rows, b, r = ax.rows, ax.block, ax.r
+    k = int(b.max()) + 1  # burn-in windows (block BURN_IN) always train and keep NaN predictions
+    base_cols = [c[rows] for c in offsets if np.any(c[rows])]
+
+    def predict(trials: Sequence[Trial], with_artefacts: bool) -> np.ndarray:
+        out = np.full(len(rows), np.nan)
+        for f in range(k):
+            cols = list(base_cols)
+            for t in trials:
+                e = t.evidence.get(ax.name)
+                if e is None or not e.included or (t.hypothesis.artefact and not with_artefacts):
+                    continue
+                idx = int(e.fit.theta_fold[f])
+                s = t.hypothesis.settings[ax.name][idx] if idx >= 0 else None
+                if s is None:
+                    continue
+                phys, nuis = setting_columns(stack, s)
+                cols += [c[rows] for c in phys + nuis]
+            if with_artefacts:
+                cols += [c[rows] for c in ax.artefacts]  # steps found before the search
+            D = np.column_stack(cols)
+            scale = np.linalg.norm(D, axis=0)
+            scale[scale == 0] = 1.0
+            Ds = D / scale
+            tr = b != f
+            G = Ds[tr].T @ Ds[tr] + 1e-9 * np.eye(Ds.shape[1])
+            beta = np.linalg.solve(G, Ds[tr].T @ r[tr])
+            out[b == f] = Ds[b == f] @ beta
+        return out
+
+    return AxisHeld(axis=ax.name, rows=rows, block=b, before=predict([], False), after=predict(accepted, True),
+                    physics=predict(accepted, False))
