@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "gateway.commands.profile",
     "gateway.commands.identify",
     "gateway.commands.estimate",
+    "gateway.commands.diagnose",
     "gateway.commands.model",
     "simulators.cli",
 )

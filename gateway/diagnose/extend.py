@@ -51,7 +51,8 @@ def extend_model(model: ThermalModel, terms: Mapping[str, Sequence[Term]], *,
                     if have is not None and abs(have - part.delay_s) > 1e-9:
                         target = f"{part.input}_delay{round(part.delay_s)}s"
                         if target not in names:
-                            inputs.append(Same(name=target, of=part.input, note=f"{part.input} behind its own dead time"))
+                            inputs.append(Same(name=target, of=part.input,
+                                               note=f"{part.input} behind its own dead time"))
                             names.add(target)
                     added.setdefault((axis, target), []).extend(term.with_gain(float(c) * term.gain)
                                                                 for term in part.terms)

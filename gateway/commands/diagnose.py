@@ -1,0 +1,102 @@
+"""``cncgw diagnose``: where a model and recordings differ, what physics is missing, and a model with it."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from gateway.commands._common import (
+    add_recording_options,
+    load_model_for,
+    positive_float,
+    positive_int,
+    read_recordings,
+)
+from gateway.errors import GatewayError
+from gateway.profile import load_profile
+
+
+def _share(text: str) -> float:
+    value = positive_float(text)
+    if value >= 1:
+        raise argparse.ArgumentTypeError(f"expected a number between 0 and 1, got {text!r}")
+    return value
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Add ``cncgw diagnose``."""
+    p = sub.add_parser(
+        "diagnose", help="find what physics the model misses, add it, and show the fit improve on held-out data",
+        description="Compare a model with recordings: locate where the residual leaves its noise band, test "
+                    "hypotheses of missing physics (room temperature, eddy loss ~ speed^2, a slow mode, cabinet "
+                    "heat, bearing preload, dead time, a chiller...) on held-out blocks of time with family-wise "
+                    "error control, classify measurement artefacts, and write the extended model.")
+    p.add_argument("--profile", required=True, metavar="PROFILE", help="machine profile (TOML)")
+    p.add_argument("--model", metavar="MODEL", help="model file (default: the profile's)")
+    p.add_argument("recordings", nargs="+", metavar="RECORDING", help="recordings with measured displacement (CSV)")
+    p.add_argument("-o", "--output", metavar="REPORT_DIR",
+                   help="write report.md, report.json, figures and <model>.diagnosed.model.toml here")
+    p.add_argument("--json", action="store_true", help="print the report as JSON instead of text")
+    p.add_argument("--validate", nargs="+", metavar="RECORDING", default=[],
+                   help="recordings never used for fitting or selection: estimated with the model before and after")
+    p.add_argument("--alpha", type=_share, default=0.05, help="family-wise error rate per round (default 0.05)")
+    p.add_argument("--min-effect", type=_share, default=0.02, metavar="SHARE",
+                   help="relevance: an accepted term's contribution RMS must reach this share of the axis's peak "
+                        "displacement (default 0.02)")
+    p.add_argument("--min-gain", type=_share, default=0.1, metavar="SHARE",
+                   help="relevance: share of an axis's held-out squared error it must remove (default 0.1)")
+    p.add_argument("--blocks", type=positive_int, default=12, metavar="K", help="held-out blocks of time (default 12)")
+    p.add_argument("--force", action="store_true", help="overwrite REPORT_DIR's files")
+    add_recording_options(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Diagnose; print conclusions and the before/after table; write the report on request."""
+    from gateway.diagnose import Options, diagnose, factor_infos, write_report
+    from gateway.diagnose.report import to_json
+    from gateway.estimate import estimate
+
+    profile = load_profile(args.profile)
+    model, model_path = load_model_for(profile, args.model)
+    recs = read_recordings(args.recordings, profile, period_s=args.period_s, require_displacement=False)
+    if args.blocks < 3:
+        raise GatewayError(f"--blocks: expected at least 3 held-out blocks, got {args.blocks}")
+    options = Options(alpha=args.alpha, min_effect_share=args.min_effect, min_gain=args.min_gain, blocks=args.blocks)
+    out = Path(args.output) if args.output else None
+    if out is not None and (out / "report.md").exists() and not args.force:
+        raise GatewayError(f"{out}/report.md exists: pass --force to overwrite it")
+    d = diagnose(model, recs, factors=factor_infos(profile), options=options, gap_policy=args.gap_policy)
+    validation = []
+    if args.validate:
+        for r in read_recordings(args.validate, profile, period_s=args.period_s, require_displacement=True):
+            b = estimate(model, r, gap_policy=args.gap_policy)
+            a = estimate(d.extended, r, gap_policy=args.gap_policy)
+            validation.append({"recording": r.source, "before": b.to_json()["axes"], "after": a.to_json()["axes"]})
+    extra = {"validation": validation, "model": str(model_path), "profile": str(profile.path)}
+    written = {}
+    if out is not None:
+        written = write_report(d, out, model_name=model_path.name.removesuffix(".toml").removesuffix(".model"),
+                               title=f"{profile.name}, model {model_path.name}", extra=extra)
+    if args.json:
+        print(json.dumps(to_json(d, model_file=str(written.get("model", ""))) | extra, indent=2))
+        return 0
+    print(f"diagnosis of {len(recs)} recording(s) with model {model_path} ({d.wall_s:.1f} s):")
+    for c in d.conclusions:
+        print(f"  {c}")
+    print("held-out error per axis (each block predicted from the others), before -> after:")
+    for a, b in d.before.items():
+        af = d.after[a]
+        print(f"  {a}: RMS {b.rms_um:.3f} -> {af.rms_um:.3f} um, max |error| {b.max_abs_error_um:.3f} -> "
+              f"{af.max_abs_error_um:.3f} um ({b.max_error_pct_of_peak:.1f} -> {af.max_error_pct_of_peak:.1f} % of "
+              f"peak {b.peak_um:.3f} um)")
+    for v in validation:
+        print(f"validation {v['recording']} (never fitted):")
+        for a, m in v["before"].items():
+            m2 = v["after"].get(a, {})
+            print(f"  {a}: RMS {m['rms_um']:.3f} -> {m2.get('rms_um', float('nan')):.3f} um, max |error| "
+                  f"{m['max_abs_error_um']:.3f} -> {m2.get('max_abs_error_um', float('nan')):.3f} um")
+    for path in written.values():
+        print(f"wrote {path}")
+    return 0

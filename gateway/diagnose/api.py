@@ -1,0 +1,235 @@
+"""``diagnose``: a model and recordings in; where they differ, what physics is missing, a bigger model out.
+
+1. Residuals per axis (measured - simulated), aligned at each recording's start.
+2. Locate: noise band, windows outside it, steps (measurement artefacts), change points, operating
+   states, spectral lines, correlations (:mod:`gateway.diagnose.locate`).
+3. Hypotheses of missing physics (:mod:`gateway.diagnose.hypotheses`).
+4. Selection on held-out blocks of time with false-positive control (:mod:`gateway.diagnose.search`).
+5. The extended model (:mod:`gateway.diagnose.extend`) and the figures a report needs.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from gateway import __version__
+from gateway.diagnose.data import Stack, build_stack
+from gateway.diagnose.extend import extend_model
+from gateway.diagnose.hypotheses import FactorInfo, Hypothesis, catalogue
+from gateway.diagnose.locate import (
+    ChangePoint,
+    Correlation,
+    Line,
+    Noise,
+    State,
+    Step,
+    Window,
+    aligned_residual,
+    candidate_signals,
+    change_points,
+    correlations,
+    find_steps,
+    located_windows,
+    noise_level,
+    operating_states,
+    spectral_lines,
+)
+from gateway.diagnose.search import Options, SearchResult, search
+from gateway.diagnose.select import make_blocks
+from gateway.model.model import ThermalModel
+from gateway.profile import Profile
+from gateway.recording import Recording
+
+
+@dataclass(kw_only=True)
+class AxisFindings:
+    """What the residual of one axis shows before any hypothesis is fitted."""
+
+    axis: str
+    residual: np.ndarray  # aligned measured - model, every window of the stack
+    noise: Noise
+    windows: list[Window]
+    steps: list[Step]
+    change_points: list[ChangePoint]
+    states: list[State]
+    lines: list[Line]
+    correlations: list[Correlation]
+
+
+@dataclass(frozen=True, kw_only=True)
+class HeldMetrics:
+    """Held-out errors of one axis: RMS, max |error|, peak |displacement|, max error as % of peak."""
+
+    axis: str
+    windows: int
+    rms_um: float
+    max_abs_error_um: float
+    peak_um: float
+    max_error_pct_of_peak: float
+
+
+@dataclass(kw_only=True)
+class Diagnosis:
+    """Everything diagnosis found: findings per axis, every hypothesis tried, the extended model."""
+
+    model: ThermalModel
+    extended: ThermalModel
+    stack: Stack
+    findings: dict[str, AxisFindings]
+    hypotheses: list[Hypothesis]
+    result: SearchResult
+    options: Options
+    before: dict[str, HeldMetrics]
+    after: dict[str, HeldMetrics]
+    after_physics: dict[str, HeldMetrics]
+    conclusions: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    wall_s: float = 0.0
+
+    @property
+    def accepted_physics(self) -> list[str]:
+        """Keys of the accepted hypotheses that are physics (not artefacts), in order of acceptance."""
+        return [t.hypothesis.key for t in self.result.accepted if not t.hypothesis.artefact]
+
+    @property
+    def artefacts(self) -> list[str]:
+        """Measurement artefacts found: steps and accepted artefact hypotheses."""
+        out = [f"step {s.size_um:+.3g} um on {s.axis} at {s.time_h:.2f} h ({s.recording})"
+               for f in self.findings.values() for s in f.steps]
+        return out + [t.hypothesis.key for t in self.result.accepted if t.hypothesis.artefact]
+
+
+def factor_infos(profile: Profile) -> list[FactorInfo]:
+    """What diagnosis needs to know about the profile's factors."""
+    return [FactorInfo(name=f.name, unit=f.unit, stat=f.stat.value, description=f.description) for f in profile.factors]
+
+
+def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: Sequence[FactorInfo] = (),
+             options: Options | None = None, gap_policy: str = "hold", families: Sequence[str] | None = None,
+             progress: Callable[[str], None] | None = None) -> Diagnosis:
+    """Compare ``model`` with ``recordings``, locate the differences, test hypotheses, extend the model."""
+    t0 = time.perf_counter()
+    options = options or Options()
+    # many small least-squares problems: BLAS threads only contend for the cores (see identify)
+    with threadpool_limits(limits=1, user_api="blas"):
+        stack = build_stack(model, recordings, gap_policy=gap_policy)
+        infos = list(factors) or [FactorInfo(name=f, unit=model.units.get(f, "")) for f in model.factors]
+        by_name = {f.name: f for f in infos}
+        speeds = [f for f in model.factors if f in by_name and by_name[f].is_speed]
+        currents = [f for f in model.factors if f in by_name and by_name[f].is_current_sq and not by_name[f].is_rotor]
+        signals = candidate_signals(stack, speeds, currents)
+        findings: dict[str, AxisFindings] = {}
+        artefacts: dict[str, list[np.ndarray]] = {}
+        for i, a in enumerate(model.axes):
+            if not np.isfinite(stack.y[i]).any():
+                continue
+            r = aligned_residual(stack, i)
+            noise = noise_level(stack, i, r)
+            steps = find_steps(stack, i, r, noise)
+            artefacts[a] = [s.column(stack) for s in steps]
+            r_clean = r - sum((s.size_um * s.column(stack) for s in steps), np.zeros(stack.n))
+            findings[a] = AxisFindings(
+                axis=a, residual=r, noise=noise, windows=located_windows(stack, r_clean, noise), steps=steps,
+                change_points=change_points(stack, r_clean), states=operating_states(stack, r_clean),
+                lines=spectral_lines(stack, r_clean), correlations=correlations(stack, r_clean, signals))
+        measured = np.isfinite(stack.y).any(axis=0)
+        block = make_blocks(stack.bounds, measured, options.blocks)
+        hyps = catalogue(stack, model, infos, families=families)
+        result = search(stack, hyps, block=block, artefacts=artefacts, options=options, progress=progress)
+    on = [(t, f"{t.hypothesis.key} on {', '.join(t.axes)}") for t in result.accepted]
+    info = {"diagnosis": {
+        "cncgw_version": __version__, "recordings": list(stack.names),
+        "accepted": [text for t, text in on if not t.hypothesis.artefact],
+        "artefacts_excluded": [text for t, text in on if t.hypothesis.artefact]
+        + [f"step on {s.axis} at {s.time_h:.2f} h in {s.recording}" for f in findings.values() for s in f.steps],
+    }}
+    extended = extend_model(model, result.terms, info=info)
+    before, after, physics = {}, {}, {}
+    for a, h in result.held.items():
+        i = model.axes.index(a)
+        meas = stack.y[i][h.rows]
+        r = meas - stack.base[i][h.rows]
+        ok = h.block >= 0
+        before[a] = _metrics(a, r[ok] - h.before[ok], meas[ok] - h.before[ok])
+        after[a] = _metrics(a, r[ok] - h.after[ok], meas[ok] - h.before[ok])
+        physics[a] = _metrics(a, r[ok] - h.physics[ok], meas[ok] - h.before[ok])
+    diag = Diagnosis(model=model, extended=extended, stack=stack, findings=findings, hypotheses=hyps, result=result,
+                     options=options, before=before, after=after, after_physics=physics, notes=list(stack.notes))
+    diag.conclusions = conclusions(diag, block)
+    diag.wall_s = time.perf_counter() - t0
+    return diag
+
+
+def _metrics(axis: str, err: np.ndarray, measured: np.ndarray) -> HeldMetrics:
+    """Errors on the held-out windows; the peak is the measured displacement's (offset removed)."""
+    if not err.size:
+        return HeldMetrics(axis=axis, windows=0, rms_um=math.nan, max_abs_error_um=math.nan, peak_um=math.nan,
+                           max_error_pct_of_peak=math.nan)
+    peak = float(np.max(np.abs(measured)))
+    mx = float(np.max(np.abs(err)))
+    return HeldMetrics(axis=axis, windows=int(err.size), rms_um=float(np.sqrt(np.mean(err ** 2))),
+                       max_abs_error_um=mx, peak_um=peak,
+                       max_error_pct_of_peak=100 * mx / peak if peak > 0 else math.inf)
+
+
+def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
+    """What can and cannot be concluded from these recordings, in plain sentences."""
+    st = d.stack
+    out = []
+    span_h = max(b - a for a, b in st.bounds) * st.dt_s / 3600.0
+    total_h = st.n * st.dt_s / 3600.0
+    k = int(block.max()) + 1 if (block >= 0).any() else 0
+    block_h = float(np.sum(block >= 0)) * st.dt_s / 3600.0 / max(k, 1)
+    out.append(f"{len(st.names)} recording(s), {total_h:.1f} h in all (longest {span_h:.1f} h); judged on {k} "
+               f"held-out blocks of about {block_h:.1f} h (the first block of each recording only fits the "
+               "initial state)")
+    if k < 6:
+        out.append(f"only {k} held-out blocks: the tests have little power; record longer to conclude more")
+    moving = [f for f in st.factors if np.nanmax(np.abs(st.du[f])) > 0] if st.factors else []
+    if not moving:
+        out.append("no factor varies in these recordings: the model's paths cannot be tested, only recorded "
+                   "columns and time-based hypotheses (slow drift, daily cycle)")
+    else:
+        changes = _input_changes(st, moving)
+        if changes <= 2:
+            out.append(f"the inputs change only {changes} time(s) (a single warm-up or step): dynamics are "
+                       "weakly identified and held-out blocks test extrapolation in time only")
+    if span_h < 36:
+        out.append(f"the longest recording is {span_h:.0f} h: a daily cycle cannot be told apart from a slow "
+                   "drift or from the work schedule; record over several days, including an idle one")
+    for a, f in d.findings.items():
+        if f.noise.quantum_um > 0:
+            out.append(f"axis {a}: the displacement is quantised in steps of {f.noise.quantum_um:.3g} um "
+                       f"(noise floor {f.noise.quantum_um / math.sqrt(12):.3g} um RMS)")
+    physics = [t for t in d.result.accepted if not t.hypothesis.artefact]
+    if not physics:
+        out.append("nothing significant is missing: no hypothesis lowered the held-out error significantly "
+                   "(family-wise) and by a relevant amount")
+        best = max((t for t in d.result.trials if t.round == 1 and not t.hypothesis.artefact),
+                   key=lambda t: t.score, default=None)
+        if best is not None:
+            out.append(f"closest candidate: {best.hypothesis.title}: {best.verdict}")
+    else:
+        for t in physics:
+            gain = ", ".join(f"{a} {100 * t.evidence[a].gain:.0f} %" for a in t.axes)
+            out.append(f"missing physics: {t.hypothesis.title} (held-out squared error down {gain})")
+    for a, f in d.findings.items():
+        for s in f.steps:
+            out.append(f"axis {a}: a step of {s.size_um:+.3g} um within one window at {s.time_h:.2f} h "
+                       f"({s.recording}) is a measurement artefact (too fast for heat), excluded from the fits")
+    for t in d.result.accepted:
+        if t.hypothesis.artefact:
+            out.append(f"{t.hypothesis.title} on {', '.join(t.axes)}: excluded from the model")
+    return out
+
+
+def _input_changes(st: Stack, factors: Sequence[str]) -> int:
+    """How many times the set of active factors changes (a run that warms up once changes once or twice)."""
+    act = np.array([np.abs(st.du[f]) > 0.02 * np.nanmax(np.abs(st.du[f])) for f in factors])
+    return int(np.sum(np.any(np.diff(act.astype(int), axis=1) != 0, axis=0)))

@@ -1,0 +1,28 @@
+"""Writing a diagnosis: report (Markdown, JSON), figures and the extended model file, into one folder."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from gateway.diagnose.api import Diagnosis
+from gateway.diagnose.plots import write_figures
+from gateway.diagnose.report import to_json, to_markdown
+from gateway.model import save_model
+
+
+def write_report(d: Diagnosis, out_dir: str | Path, *, model_name: str = "model", title: str = "",
+                 figures: bool = True, extra: dict[str, Any] | None = None) -> dict[str, Path]:
+    """Write ``report.md``, ``report.json``, the PNGs and ``<model_name>.diagnosed.model.toml``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    model_file = out / f"{model_name}.diagnosed.model.toml"
+    save_model(d.extended, model_file)
+    names = write_figures(d, out) if figures else []
+    doc = to_json(d, figures=names, model_file=model_file.name) | (extra or {})
+    (out / "report.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    (out / "report.md").write_text(to_markdown(d, figures=names, model_file=model_file.name, title=title),
+                                   encoding="utf-8")
+    return {"report": out / "report.md", "json": out / "report.json", "model": model_file,
+            **{n: out / n for n in names}}
