@@ -37,7 +37,7 @@ class Options:
     alpha: float = 0.05  # family-wise error rate of one round (Holm over its hypotheses)
     alpha_axis: float = 0.05  # an axis joins an accepted hypothesis when its own blocks improve at this level
     min_gain: float = 0.1  # share of an axis's held-out squared error the hypothesis must remove
-    min_effect_share: float = 0.02  # its contribution's RMS, as a share of the axis's peak |displacement|
+    min_effect_share: float = 0.02  # its contribution's RMS, as a share of the largest peak |displacement|
     min_effect_um: float = 0.0  # ... and at least this many micrometres
     blocks: int = 12
     max_rounds: int = 4
@@ -166,6 +166,15 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
     """Forward selection over all axes; ``block`` gives each window's block (-1: not used)."""
     axes: list[_Axis] = []
     offsets = stack.per_recording()
+    # relevance is judged against the machine's thermal displacement, the largest peak of any axis: an
+    # axis that barely moves must not make a tenth of a micrometre look important
+    peaks = []
+    for i in range(len(stack.axes)):
+        ok = np.isfinite(stack.y[i])
+        if ok.any():
+            meas = stack.y[i][ok] - np.median(stack.y[i][ok][:10])
+            peaks.append(float(np.max(np.abs(np.concatenate([meas, stack.base[i][ok]])))))
+    relevance = max(options.min_effect_share * max(peaks, default=0.0), options.min_effect_um)
     for i, name in enumerate(stack.axes):
         ok = (block != -1) & np.isfinite(stack.y[i])
         rows = np.flatnonzero(ok)
@@ -174,10 +183,7 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
         r = (stack.y[i] - stack.base[i])[rows]
         arts = [c for c in artefacts.get(name, [])]
         fixed = [c[rows] for c in offsets if np.any(c[rows])] + [c[rows] for c in arts]
-        meas = stack.y[i][rows] - np.median(stack.y[i][rows][:10])
-        peak = float(np.max(np.abs(np.concatenate([meas, stack.base[i][rows]]))))
-        rel = max(options.min_effect_share * peak, options.min_effect_um)
-        axes.append(_Axis(i, name, rows, r, block[rows], fixed, rel, arts))
+        axes.append(_Axis(i, name, rows, r, block[rows], fixed, relevance, arts))
     trials: list[Trial] = []
     accepted: list[Trial] = []
     remaining = list(hypotheses)
@@ -266,8 +272,10 @@ def _evidence(stack: Stack, axes: Sequence[_Axis], h: Hypothesis) -> dict[str, A
         gains = fit.gains[:n_phys]
         effect = 0.0
         if best is not None:
-            phys, _ = setting_columns(stack, best)
-            contrib = sum((g * c[ax.rows] for g, c in zip(gains, phys, strict=True)), np.zeros(len(ax.rows)))
+            phys, nuis = setting_columns(stack, best)
+            # an artefact's size is that of its nuisance columns (a drift's ramp); physics: its components
+            cols, g_all = (nuis, fit.gains[n_phys:]) if h.artefact else (phys, gains)
+            contrib = sum((g * c[ax.rows] for g, c in zip(g_all, cols, strict=True)), np.zeros(len(ax.rows)))
             effect = float(np.std(contrib))
         before = float(fit.without.sum()) if fit.without is not None else math.nan
         out[ax.name] = AxisEvidence(
@@ -287,7 +295,7 @@ def _judge(t: Trial, o: Options) -> str:
             e.note = f"blocks do not improve consistently (p = {e.p:.2g})"
         elif e.gain < o.min_gain:
             e.note = f"held-out error down only {100 * e.gain:.1f} % (< {100 * o.min_gain:.0f} %)"
-        elif not t.hypothesis.artefact and e.effect_rms_um < e.relevance_um:
+        elif e.effect_rms_um < e.relevance_um:
             e.note = f"contribution {e.effect_rms_um:.3g} um RMS below the relevance bound {e.relevance_um:.3g} um"
         else:
             e.included = True
