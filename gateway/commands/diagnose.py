@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
+from dataclasses import replace
 from pathlib import Path
+
+import numpy as np
 
 from gateway.commands._common import (
     add_recording_options,
@@ -14,7 +18,21 @@ from gateway.commands._common import (
     read_recordings,
 )
 from gateway.errors import GatewayError
+from gateway.model.inputs import hold_missing
 from gateway.profile import load_profile
+from gateway.recording import Recording
+
+
+def split_by(rec: Recording, column: str) -> list[Recording]:
+    """The runs of ``rec``: a new one wherever ``column`` changes value (missing cells continue the run)."""
+    values = rec.extras.get(column)
+    if values is None:
+        have = ", ".join(sorted(rec.extras)) or "none"
+        raise GatewayError(f'{rec.source}: --split-by: no numeric column "{column}" (numeric extra columns: {have})')
+    held = hold_missing(np.asarray(values, float))
+    cuts = [0, *(np.flatnonzero(np.diff(held) != 0) + 1).tolist(), len(rec)]
+    return [replace(rec.slice(a, b), source=f"{rec.source}[{column}={held[a]:g}]")
+            for a, b in itertools.pairwise(cuts) if b > a]
 
 
 def _share(text: str) -> float:
@@ -47,6 +65,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--min-gain", type=_share, default=0.1, metavar="SHARE",
                    help="relevance: share of an axis's held-out squared error it must remove (default 0.1)")
     p.add_argument("--blocks", type=positive_int, default=12, metavar="K", help="held-out blocks of time (default 12)")
+    p.add_argument("--split-by", metavar="COLUMN",
+                   help="a recording holds several runs one after the other (e.g. a day number column): start a "
+                        "new recording wherever COLUMN changes value; each starts in its own equilibrium")
     p.add_argument("--force", action="store_true", help="overwrite REPORT_DIR's files")
     add_recording_options(p)
     p.set_defaults(func=run)
@@ -61,6 +82,8 @@ def run(args: argparse.Namespace) -> int:
     profile = load_profile(args.profile)
     model, model_path = load_model_for(profile, args.model)
     recs = read_recordings(args.recordings, profile, period_s=args.period_s, require_displacement=False)
+    if args.split_by:
+        recs = [part for r in recs for part in split_by(r, args.split_by)]
     if args.blocks < 3:
         raise GatewayError(f"--blocks: expected at least 3 held-out blocks, got {args.blocks}")
     options = Options(alpha=args.alpha, min_effect_share=args.min_effect, min_gain=args.min_gain, blocks=args.blocks)
@@ -68,6 +91,9 @@ def run(args: argparse.Namespace) -> int:
     if out is not None and (out / "report.md").exists() and not args.force:
         raise GatewayError(f"{out}/report.md exists: pass --force to overwrite it")
     d = diagnose(model, recs, factors=factor_infos(profile), options=options, gap_policy=args.gap_policy)
+    if args.period_s:
+        d.conclusions.append(f"rows were taken as {args.period_s:g} s apart (--period-s): every time constant and "
+                             "dead time found scales with the true period")
     validation = []
     if args.validate:
         for r in read_recordings(args.validate, profile, period_s=args.period_s, require_displacement=True):

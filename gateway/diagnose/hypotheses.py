@@ -31,7 +31,7 @@ from gateway.model.terms import FirstOrder
 
 DAY_S = 86400.0
 #: names of recorded columns taken to be the room (ambient) temperature
-ROOM_NAMES = re.compile(r"(room|ambient|amb\b|ambi|umgebung|hall|air|t_?amb|t15)", re.IGNORECASE)
+ROOM_NAMES = re.compile(r"(room|ambient|amb\b|ambi|umgebung|hall|air|t_?amb)", re.IGNORECASE)
 #: a static path is a lag far shorter than any window: the periodic disturbance's lag is in its phase
 STATIC_TAU_S = 1.0
 
