@@ -64,7 +64,7 @@ CASES: dict[str, Case] = {
     "eddy loss": Case("[effects.eddy_loss]\nloss_w_at_1000rpm = 15.0\n", "eddy_loss", note="15 W at 1000 rpm"),
     "slow mode": Case("[effects.slow_path]\ntime_constant_h = 24.0\num_per_k = { z = 10.0 }\n", "slow_mode",
                       note="a 24 h part fed by the head, 10 um/K in z"),
-    "cabinet": Case("[effects.cabinet]\nw_per_a2 = 1.0\n", "cabinet", note="1 W per A^2 of amplifier current"),
+    "cabinet": Case("[effects.cabinet]\nw_per_a2 = 2.0\n", "cabinet", note="2 W per A^2 of amplifier current"),
     "preload": Case("[effects.bearing_preload]\ngain_per_k = 0.01\n", "bearing_preload",
                     note="1 % more friction per K of bearing over head"),
     "dead time": Case("[effects.coolant_delay]\nfraction = 0.5\ndelay_s = 1800.0\ntank_capacity_kj_per_k = 40.0\n"

@@ -229,7 +229,7 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
 
 
 def _monotonic(st: Stack, factor: str) -> bool:
-    """Whether a factor moves once: its total variation (smoothed over an hour) is under twice its range."""
+    """Whether a factor moves once: its total variation (smoothed over an hour) is under 3 x its range."""
     width = max(1, round(3600.0 / st.dt_s))
     tv = rng = 0.0
     for a, b in st.bounds:
@@ -239,4 +239,4 @@ def _monotonic(st: Stack, factor: str) -> bool:
         sm = np.convolve(x, np.ones(width) / width, mode="valid")
         tv += float(np.sum(np.abs(np.diff(sm))))
         rng += float(np.ptp(sm))
-    return rng > 0 and tv < 2 * rng
+    return rng > 0 and tv < 3 * rng

@@ -440,17 +440,26 @@ def _corr(stack: Stack, y: np.ndarray, x: np.ndarray) -> tuple[float, float, int
         xs.append(x[a:b][m] - x[a:b][m].mean())
     if not ys:
         return 0.0, math.inf, 0
-    yy, xx = np.concatenate(ys), np.concatenate(xs)
+    r, se = coloured_correlation(np.concatenate(xs), np.concatenate(ys))
+    return r, se, sum(len(v) for v in ys)
+
+
+def coloured_correlation(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Pearson r of two series and its standard error when both are autocorrelated.
+
+    Bartlett's formula for independent series: var(r) ~ (1/N) sum_k rho_x(k) rho_y(k), summed (tapered) to
+    lag N/4. For two slow thermal signals it is many times 1/N, which is why a 1/sqrt(N) bound raises
+    false alarms on them.
+    """
+    xx, yy = x - x.mean(), y - y.mean()
     n = len(yy)
     den = math.sqrt(float(yy @ yy) * float(xx @ xx))
-    if den == 0:
-        return 0.0, math.inf, n
-    r = float(yy @ xx) / den
-    # var(r) ~ (1/N) sum_k rho_x(k) rho_y(k) (Bartlett's formula under independence), summed to N/4
+    if den == 0 or n < 3:
+        return 0.0, math.inf
     L = max(1, n // 4)
     rx, ry = _acf(xx, L), _acf(yy, L)
     var = (1.0 + 2.0 * float(np.sum(rx[1:] * ry[1:] * (1 - np.arange(1, L + 1) / (L + 1))))) / n
-    return r, math.sqrt(max(var, 1.0 / n)), n
+    return float(yy @ xx) / den, math.sqrt(max(var, 1.0 / n))
 
 
 def _acf(x: np.ndarray, L: int) -> np.ndarray:

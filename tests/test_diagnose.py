@@ -1,0 +1,258 @@
+"""Diagnosis: concealed effects on the simulated machine, the CLI, real recordings, and the statistics.
+
+The simulated cases come from bench/diagnose.py (the same generator and scoring; the bench runs every case
+over several seeds, these tests a subset on one seed). Ground truth is only used to score, never passed in.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gateway.cli import main
+from gateway.diagnose import Options, diagnose, factor_infos
+from gateway.diagnose.data import build_stack
+from gateway.diagnose.locate import aligned_residual, coloured_correlation, find_steps, noise_level, spectral_lines
+from gateway.diagnose.select import BURN_IN, holm, make_blocks, one_sided_p
+from gateway.estimate import estimate
+from gateway.model import FirstOrder, PathTF, ThermalModel, load_model, save_model
+from gateway.profile import load_profile
+from gateway.recording import Recording
+
+ROOT = Path(__file__).resolve().parent.parent
+SIM_PROFILE = ROOT / "profiles" / "sim-vmc.toml"
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("bench_diagnose", ROOT / "bench" / "diagnose.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up while being created
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def bench():
+    return _bench()
+
+
+@pytest.fixture(scope="module")
+def baseline(bench):
+    """The model identified on the paper's 9 runs with every effect off (seed 1)."""
+    return bench.baseline(1)
+
+
+@pytest.fixture(scope="module")
+def room_case(bench, baseline):
+    """Room temperature recorded, concealed: the recording diagnosis sees, one it never sees, its diagnosis."""
+    case = bench.CASES["room recorded"]
+    seen, fresh = bench.simulate_case(case, 1), bench.simulate_case(case, 1, fresh=True)
+    d = diagnose(baseline, [seen.recording()], factors=factor_infos(load_profile(SIM_PROFILE)))
+    return seen, fresh, d
+
+
+# ------------------------------------------------------------------------------ concealed effects ---
+def test_recorded_room_temperature_is_named_located_and_added(bench, baseline, room_case):
+    seen, fresh, d = room_case
+    assert d.accepted_physics[0] == "room_recorded:room_c"
+    text, i = bench.located(bench.CASES["room recorded"], d, seen)
+    assert d.model.axes[i] == "z"
+    assert text.endswith("24 h line")
+    assert float(text.split(" %")[0]) >= 80.0
+    assert d.after["z"].rms_um < 0.3 * d.before["z"].rms_um
+    before, after = bench.fresh_rms(baseline, fresh.recording()), bench.fresh_rms(d.extended, fresh.recording())
+    assert after < 0.7 * before  # at least 30 % lower RMS on a recording diagnosis never saw
+    assert [i.name for i in d.extended.inputs] == ["room_c"]
+    assert d.extended.path("z", "room_c").kind != "zero"
+
+
+def test_the_extended_model_predicts_exactly_what_diagnosis_fitted(room_case):
+    seen, _, d = room_case
+    est = estimate(d.extended, seen.recording(), align="none")
+    fitted = d.stack.base + np.array([sum((t.contribution for t in d.result.terms.get(a, [])), np.zeros(d.stack.n))
+                                      for a in d.model.axes])
+    assert np.abs(est.estimated - fitted).max() < 1e-9
+
+
+def test_a_slow_mode_beyond_the_identification_runs_is_named(bench, baseline):
+    row = bench.run_case("slow mode", 1, baseline)
+    assert row.accepted[0] == "slow_mode:spindle_speed"
+    assert row.fresh_gain >= 0.3
+
+
+def test_a_sensor_step_is_an_artefact_not_physics(bench, baseline):
+    case = bench.CASES["sensor step"]
+    seen = bench.simulate_case(case, 1)
+    d = diagnose(baseline, [seen.recording()], factors=factor_infos(load_profile(SIM_PROFILE)))
+    steps = [s for f in d.findings.values() for s in f.steps]
+    true_h = seen.scenario.effects.sensor_artefacts.step_at_h
+    assert [(s.axis, round(s.time_h - true_h, 6)) for s in steps] == [("z", pytest.approx(0.0, abs=1 / 60))]
+    assert steps[0].size_um == pytest.approx(2.0, abs=0.3)
+    assert d.accepted_physics == []
+    assert any("measurement artefact" in c for c in d.conclusions)
+    assert d.after["z"].rms_um < d.before["z"].rms_um  # removing the step is what improves the fit
+
+
+def test_nothing_is_accepted_when_nothing_is_missing(bench, baseline):
+    row = bench.run_case("none 1 day", 1, baseline)
+    assert row.accepted == []
+    assert row.artefacts == []
+    seen = bench.simulate_case(bench.CASES["none 1 day"], 1)
+    d = diagnose(baseline, [seen.recording()], factors=factor_infos(load_profile(SIM_PROFILE)))
+    assert "nothing significant is missing" in " ".join(d.conclusions)
+    assert d.extended == d.model.with_paths([], info=d.extended.info)
+
+
+# ------------------------------------------------------------------------------------------------ CLI ---
+def test_cli_writes_report_figures_and_a_model_estimate_accepts(tmp_path, baseline, room_case, capsys):
+    from simulators.machine import write_run
+
+    seen, fresh, _ = room_case
+    seen_csv, _ = write_run(seen, tmp_path / "seen")
+    fresh_csv, _ = write_run(fresh, tmp_path / "fresh")
+    model = save_model(baseline, tmp_path / "base.model.toml")
+    out = tmp_path / "report"
+    code = main(["diagnose", "--profile", str(SIM_PROFILE), "--model", str(model), str(seen_csv), "-o", str(out),
+                 "--validate", str(fresh_csv)])
+    text = capsys.readouterr().out
+    assert code == 0
+    assert "missing physics: room temperature (recorded as room_c)" in text
+    assert f"validation {fresh_csv} (never fitted):" in text
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["base.diagnosed.model.toml", "contributions.png", "fit.png", "report.json", "report.md",
+                     "residual.png", "spectrum.png"]
+    doc = json.loads((out / "report.json").read_text())
+    assert doc["accepted"][0] == "room_recorded:room_c"
+    assert doc["held_out"]["after"]["z"]["rms_um"] < doc["held_out"]["before"]["z"]["rms_um"]
+    assert doc["validation"][0]["after"]["z"]["rms_um"] < doc["validation"][0]["before"]["z"]["rms_um"]
+    assert any(t["verdict"] == "accepted" for t in doc["trials"])
+    assert "## Every hypothesis tried" in (out / "report.md").read_text()
+    extended = load_model(out / "base.diagnosed.model.toml")
+    assert extended.info["diagnosis"]["accepted"][0].startswith("room_recorded:room_c on")
+    assert main(["estimate", "--profile", str(SIM_PROFILE), "--model", str(out / "base.diagnosed.model.toml"),
+                 str(fresh_csv), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)[0]["axes"]["z"]["rms_um"] > 0
+    assert main(["diagnose", "--profile", str(SIM_PROFILE), "--model", str(model), str(seen_csv), "-o", str(out)]) == 1
+    assert "report.md exists: pass --force to overwrite it" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------ real recordings ---
+def test_real_spindle_recording_runs_and_says_what_it_cannot_conclude(tmp_path, shared_data, capsys):
+    csv = shared_data / "sjtu-spindle-thermal" / "thermal_expansion_error_original.csv"
+    profile = ROOT / "bench" / "profiles" / "sjtu-spindle.toml"
+    model = tmp_path / "sjtu.model.toml"
+    assert main(["identify", "--profile", str(profile), "--period-s", "60", str(csv), "-o", str(model)]) == 0
+    capsys.readouterr()
+    assert main(["diagnose", "--profile", str(profile), "--model", str(model), "--period-s", "60", str(csv),
+                 "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    text = " ".join(doc["conclusions"])
+    assert "quantised in steps of 0.255 um" in text
+    assert "like a single warm-up" in text
+    assert "rows were taken as 60 s apart" in text
+    assert doc["findings"]["z"]["steps"] == []  # quantisation steps are not sensor knocks
+    assert {t["hypothesis"] for t in doc["trials"]} >= {"recorded_signal:T15", "slow_mode:front_bearing_c"}
+
+
+def test_real_lathe_recording_of_concatenated_days_runs(tmp_path, shared_data, capsys):
+    from gateway.commands.diagnose import split_by
+    from gateway.identify import identify
+    from gateway.recording import read_for_profile
+
+    csv = shared_data / "ace-lathe-thermal" / "ace_lathe_thermal_long.csv"
+    profile_path = ROOT / "bench" / "profiles" / "ace-lathe.toml"
+    profile = load_profile(profile_path)
+    days = split_by(read_for_profile(csv, profile, period_s=60.0), "day")
+    assert len(days) == 18
+    assert days[0].source.endswith("[day=1]")
+    model = save_model(identify(days[:6], factors=profile.factor_names, axes=profile.axes).model,
+                       tmp_path / "ace.model.toml")
+    assert main(["diagnose", "--profile", str(profile_path), "--model", str(model), "--period-s", "60",
+                 "--split-by", "day", str(csv), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert len(doc["recordings"]) == 18
+    assert any("the longest recording is 10 h" in c for c in doc["conclusions"])
+    assert "recorded_signal:day" not in {t["hypothesis"] for t in doc["trials"]}  # a counter is not a signal
+    assert main(["diagnose", "--profile", str(profile_path), "--model", str(model), "--period-s", "60",
+                 "--split-by", "shift", str(csv)]) == 1
+    assert 'no numeric column "shift"' in capsys.readouterr().err
+
+
+# -------------------------------------------------------------------------------------------- statistics ---
+def test_coloured_bound_keeps_false_alarms_near_nominal_where_the_naive_one_does_not():
+    rng = np.random.default_rng(3)
+    n, phi, trials = 1500, 0.98, 120
+    naive = coloured = 0
+    for _ in range(trials):
+        e = rng.standard_normal((2, n))
+        x = np.zeros((2, n))
+        for k in range(1, n):
+            x[:, k] = phi * x[:, k - 1] + e[:, k]
+        r, se = coloured_correlation(x[0], x[1])
+        naive += abs(r) > 1.96 / math.sqrt(n)
+        coloured += abs(r) > 1.96 * se
+    assert naive / trials > 0.5  # two independent slow signals "correlate" most of the time
+    assert coloured / trials < 0.15
+
+
+def test_holm_and_signed_rank():
+    assert holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
+    assert one_sided_p(np.ones(12)) == pytest.approx(1 / 4096)
+    assert one_sided_p(-np.ones(12)) == pytest.approx(1.0)
+
+
+def test_blocks_start_each_recording_with_a_burn_in():
+    valid = np.ones(300, dtype=bool)
+    valid[250:260] = False
+    block = make_blocks([(0, 200), (200, 300)], valid, 8)
+    assert block[0] == BURN_IN
+    assert block[200] == BURN_IN
+    assert np.all(block[250:260] == -1)
+    held = block[block >= 0]
+    assert len(np.unique(held)) >= 6
+    assert len(np.unique(block[200:300][block[200:300] >= 0])) >= 2
+
+
+def _synthetic(y_extra: np.ndarray, *, seed: int = 0) -> tuple:
+    """A one-axis model, a recording of it with ``y_extra`` added to the measurement, and their stack."""
+    model = ThermalModel(axes=("z",), factors=("speed",), units={"speed": "rpm"}, reference={},
+                         paths={("z", "speed"): PathTF(axis="z", factor="speed",
+                                                       terms=(FirstOrder(gain=0.01, tau_s=1800.0),))})
+    n = len(y_extra)
+    speed = np.where((np.arange(n) // 120) % 3 == 1, 1000.0, 0.0)
+    du = speed - speed[0]
+    y = model.discretize(60.0).simulate(du[None, :])[0] + y_extra + 0.1 * np.random.default_rng(seed).standard_normal(n)
+    rec = Recording(source="s.csv", period_s=60.0, time_s=60.0 * np.arange(1, n + 1), present=np.ones(n, dtype=bool),
+                    factors={"speed": speed}, displacement={"z": y})
+    return model, rec, build_stack(model, [rec])
+
+
+def test_steps_are_found_where_heat_cannot_move_that_fast():
+    n = 2000
+    extra = np.zeros(n)
+    extra[1200:] += 2.0  # a knock on the sensor
+    fast = 2.0 * (1 - np.exp(-np.clip(np.arange(n) - 600, 0, None) * 60.0 / 180.0))  # a 3 min thermal rise
+    _, _, stack = _synthetic(extra + fast)
+    r = aligned_residual(stack, 0)
+    steps = find_steps(stack, 0, r, noise_level(stack, 0, r))
+    assert [s.index for s in steps] == [1200]
+    assert steps[0].size_um == pytest.approx(2.0, abs=0.2)
+
+
+def test_a_daily_cycle_shows_as_a_spectral_line_and_as_the_daily_hypothesis():
+    n = 4 * 1440
+    day = 1.5 * np.sin(2 * np.pi * 60.0 * np.arange(1, n + 1) / 86400.0 + 0.7)
+    model, rec, stack = _synthetic(day - day[0])
+    lines = spectral_lines(stack, aligned_residual(stack, 0))
+    assert lines
+    assert lines[0].period_h == pytest.approx(24.0, rel=0.05)
+    assert lines[0].amplitude_um == pytest.approx(1.5, rel=0.25)
+    d = diagnose(model, [rec], options=Options(blocks=8))
+    assert d.accepted_physics == ["room_daily"]
+    assert d.after["z"].rms_um == pytest.approx(0.1, rel=0.2)

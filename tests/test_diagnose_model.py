@@ -1,0 +1,176 @@
+"""Derived model inputs (what diagnosis adds to the core): model files, checked loading, batch = live."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from gateway.errors import ModelError, RecordingError
+from gateway.estimate import estimate
+from gateway.model import FirstOrder, LiveEstimator, PathTF, ThermalModel, load_model, model_to_toml, save_model
+from gateway.model.inputs import (
+    Column,
+    Flag,
+    InputStepper,
+    Periodic,
+    Product,
+    Same,
+    Sum,
+    evaluate_inputs,
+    initial_values,
+)
+from gateway.prepare import prepare
+from gateway.recording import Recording
+
+FACTORS = ("speed", "i1_sq", "z_i_sq")
+INPUTS = (
+    Product(name="speed_sq", of=("speed", "speed"), unit="rpm^2", note="eddy loss"),
+    Product(name="speed_x_lag", of=("speed", "speed"), lag_s=(0.0, 300.0), unit="rpm^2"),
+    Sum(name="amps_sq", of=("i1_sq", "z_i_sq"), unit="A^2"),
+    Flag(name="running", of="speed", above=1.0),
+    Product(name="on_x_i1_lag", of=("running", "i1_sq"), lag_s=(0.0, 1200.0), unit="A^2"),
+    Column(name="room", column="room_c", unit="degC"),
+    Periodic(name="day_sin", period_s=86400.0, phase="sin"),
+    Periodic(name="day_cos", period_s=86400.0, phase="cos"),
+    Same(name="i1_sq_delay900s", of="i1_sq"),
+)
+
+
+def extended_model() -> ThermalModel:
+    paths = [
+        PathTF(axis="z", factor="speed", terms=(FirstOrder(gain=0.01, tau_s=1800.0),)),
+        PathTF(axis="z", factor="speed_sq", terms=(FirstOrder(gain=2e-6, tau_s=3600.0),)),
+        PathTF(axis="z", factor="speed_x_lag", terms=(FirstOrder(gain=-1e-6, tau_s=600.0),)),
+        PathTF(axis="y", factor="amps_sq", terms=(FirstOrder(gain=0.004, tau_s=3000.0),
+                                                  FirstOrder(gain=0.002, tau_s=40000.0))),
+        PathTF(axis="y", factor="on_x_i1_lag", terms=(FirstOrder(gain=-0.003, tau_s=900.0),)),
+        PathTF(axis="x", factor="room", terms=(FirstOrder(gain=1.5, tau_s=20000.0),)),
+        PathTF(axis="x", factor="day_sin", terms=(FirstOrder(gain=0.7, tau_s=1.0),)),
+        PathTF(axis="x", factor="day_cos", terms=(FirstOrder(gain=-0.4, tau_s=1.0),)),
+        PathTF(axis="z", factor="i1_sq_delay900s", terms=(FirstOrder(gain=0.003, tau_s=2400.0),), delay_s=900.0),
+    ]
+    return ThermalModel(axes=("x", "y", "z"), factors=FACTORS, units={"speed": "rpm", "i1_sq": "A^2", "z_i_sq": "A^2"},
+                        reference={"z_i_sq": 13.0}, paths={(p.axis, p.factor): p for p in paths}, machine="t",
+                        inputs=INPUTS)
+
+
+def recording(n: int = 600, *, seed: int = 0, room: bool = True) -> Recording:
+    rng = np.random.default_rng(seed)
+    speed = np.repeat(rng.choice([0.0, 800.0, 2000.0, 3000.0], size=n // 30), 30)[:n]
+    speed[:20] = 0.0
+    i1 = np.where(speed > 0, 200.0 + 0.05 * speed, 0.0) + rng.uniform(0, 5, n)
+    z = 13.0 + rng.uniform(0, 3, n)
+    extras = {}
+    if room:
+        r = 20.0 + np.sin(np.arange(n) / 200.0)
+        r[[50, 51, 300]] = np.nan  # gaps in the thermometer: the last value holds
+        extras["room_c"] = r
+    t = 60.0 * np.arange(1, n + 1) + 3600.0 * 5
+    return Recording(source="r.csv", period_s=60.0, time_s=t, present=np.ones(n, dtype=bool),
+                     factors={"speed": speed, "i1_sq": i1, "z_i_sq": z}, displacement={"z": np.zeros(n)}, extras=extras)
+
+
+def test_model_with_derived_inputs_round_trips_exactly(tmp_path):
+    m = extended_model()
+    path = save_model(m, tmp_path / "m.toml")
+    text = path.read_text()
+    assert "[inputs.speed_sq]" in text
+    assert 'kind = "product"' in text
+    back = load_model(path)
+    assert back == m
+    assert model_to_toml(back) == text
+    assert back.input_names == FACTORS + tuple(d.name for d in INPUTS)
+    assert back.units["speed_sq"] == "rpm^2"
+    assert back.path("z", "i1_sq_delay900s").delay_s == 900.0
+
+
+def test_a_model_without_derived_inputs_keeps_its_file_format():
+    m = ThermalModel(axes=("z",), factors=("speed",), units={"speed": "rpm"}, reference={},
+                     paths={("z", "speed"): PathTF(axis="z", factor="speed", terms=(FirstOrder(gain=0.01, tau_s=900.0),))})
+    text = model_to_toml(m)
+    assert "inputs" not in text
+    assert load_model("m.toml", text=text) == m
+
+
+def test_bad_derived_inputs_are_reported_with_file_line_and_key():
+    text = model_to_toml(extended_model())
+    bad = text.replace('kind = "product"', 'kind = "prodcut"', 1).replace('of = "speed"', 'of = "sped"', 1)
+    with pytest.raises(ModelError) as err:
+        load_model("bad.model.toml", text=bad)
+    lines = str(err.value).splitlines()
+    kind_line = next(k + 1 for k, line in enumerate(bad.splitlines()) if "prodcut" in line)
+    assert (f'bad.model.toml:{kind_line}: inputs.speed_sq.kind: expected one of "product", "sum", "flag", "column", '
+            f'"periodic", "same", got "prodcut" (a string) (did you mean "product"?)') in lines
+    assert any('input running: "sped" is neither a factor nor an input declared before it' in line for line in lines)
+
+
+def test_inputs_must_reference_factors_or_earlier_inputs():
+    with pytest.raises(ValueError, match='input early: "later" is neither a factor nor an input declared before it'):
+        ThermalModel(axes=("z",), factors=("speed",), units={}, reference={}, paths={},
+                     inputs=(Same(name="early", of="later"), Same(name="later", of="speed")))
+
+
+def test_batch_and_live_derived_inputs_agree():
+    rec = recording()
+    n = len(rec)
+    sig = {f: np.asarray(rec.factors[f]) for f in FACTORS}
+    cols = {"room_c": np.asarray(rec.extras["room_c"])}
+    initial = {f: float(v[0]) for f, v in sig.items()} | {"room_c": 20.0 + math.sin(1 / 200.0)}
+    batch = evaluate_inputs(INPUTS, sig, time_s=rec.time_s, dt_s=60.0, columns=cols, initial=initial)
+    live = InputStepper(INPUTS, dt_s=60.0, initial=initial, time0_s=float(rec.time_s[0]))
+    for k in range(n):
+        out = live.step({f: sig[f][k] for f in FACTORS}, time_s=float(rec.time_s[k]),
+                        columns={"room_c": cols["room_c"][k]})
+        for name, v in out.items():
+            assert v == pytest.approx(batch[name][k], rel=1e-12, abs=1e-9), (name, k)
+    assert batch["room"][51] == batch["room"][49]  # a missing reading holds the last one
+    assert batch["running"].max() == 1.0
+    assert batch["running"][0] == 0.0
+
+
+def test_a_lag_starts_settled_at_the_initial_equilibrium():
+    sig = {"speed": np.full(50, 1000.0)}
+    inp = (Product(name="p", of=("speed", "speed"), lag_s=(0.0, 600.0)),)
+    out = evaluate_inputs(inp, sig, time_s=60.0 * np.arange(50), dt_s=60.0)
+    assert np.allclose(out["p"], 1e6)
+    assert initial_values(inp, {"speed": 1000.0}, time0_s=0.0)["p"] == 1e6
+
+
+def test_prepare_and_estimate_run_a_model_with_derived_inputs():
+    m = extended_model()
+    rec = recording()
+    prep = prepare(rec, factors=m.factors, axes=m.axes, inputs=m.inputs)
+    assert prep.du.shape == (len(m.input_names), len(rec))
+    j = m.input_names.index("speed_sq")
+    assert np.allclose(prep.du[j], rec.factors["speed"] ** 2 - rec.factors["speed"][0] ** 2)
+    assert np.all(prep.du[:, 0] == 0.0)  # every input starts at its initial equilibrium
+    est = estimate(m, rec, align="none")
+    assert np.allclose(est.estimated, m.discretize(60.0).simulate(prep.du))
+    assert np.abs(est.estimated[2]).max() > 1.0
+
+
+def test_live_estimator_agrees_with_batch_replay_on_derived_inputs():
+    m = extended_model()
+    rec = recording()
+    prep = prepare(rec, factors=m.factors, axes=m.axes, inputs=m.inputs)
+    dm = m.discretize(60.0)
+    batch = dm.simulate(prep.du)
+    sig = {f: np.asarray(rec.factors[f]) for f in FACTORS}
+    initial = {f: float(v[0]) for f, v in sig.items()} | {"room_c": float(rec.extras["room_c"][0])}
+    start = initial_values(m.inputs, initial, time0_s=float(rec.time_s[0]))
+    stepper = InputStepper(m.inputs, dt_s=60.0, initial=initial, time0_s=float(rec.time_s[0]))
+    live = LiveEstimator(dm)
+    for k in range(len(rec)):
+        values = stepper.step({f: sig[f][k] for f in FACTORS}, time_s=float(rec.time_s[k]),
+                              columns={"room_c": rec.extras["room_c"][k]})
+        du = [sig[f][k] - initial[f] for f in FACTORS] + [values[d.name] - start[d.name] for d in m.inputs]
+        y = live.step(du)
+        assert np.allclose(y, batch[:, k], atol=1e-9)
+
+
+def test_a_recording_without_the_column_an_input_reads_is_rejected_by_name():
+    with pytest.raises(RecordingError, match='the model\'s input room reads column "room_c", which this recording '
+                                             r"does not have \(numeric extra columns: none\)"):
+        prepare(recording(room=False), factors=FACTORS, axes=("z",), inputs=(Column(name="room", column="room_c"),))
