@@ -67,9 +67,9 @@ CASES: dict[str, Case] = {
     "cabinet": Case("[effects.cabinet]\nw_per_a2 = 2.0\n", "cabinet", note="2 W per A^2 of amplifier current"),
     "preload": Case("[effects.bearing_preload]\ngain_per_k = 0.01\n", "bearing_preload",
                     note="1 % more friction per K of bearing over head"),
-    "dead time": Case("[effects.coolant_delay]\nfraction = 0.5\ndelay_s = 1800.0\ntank_capacity_kj_per_k = 40.0\n"
-                      "tank_room_w_per_k = 4.0\ntank_column_w_per_k = 12.0\n", "dead_time",
-                      note="coolant takes half the motor heat to a tank on the column after 30 min"),
+    "dead time": Case("[effects.coolant_delay]\nfraction = 0.5\ndelay_s = 5400.0\ntank_capacity_kj_per_k = 20.0\n"
+                      "tank_room_w_per_k = 2.0\ntank_column_w_per_k = 15.0\n", "dead_time",
+                      note="coolant takes half the motor heat to a 10 l tank on the column, 90 min later"),
     "coolant switching": Case("[effects.chiller]\nconductance_w_per_k = 15.0\n", "chiller",
                               note="chiller on the stator while the spindle runs"),
     "sensor step": Case("", "artefact", note="a 2 um step on z at a random time"),

@@ -27,7 +27,7 @@ import numpy as np
 from gateway.diagnose.data import Component, Part, Stack, lag, log_grid
 from gateway.model.inputs import Column, DerivedInput, Flag, Periodic, Product, Sum
 from gateway.model.model import ThermalModel
-from gateway.model.terms import FirstOrder
+from gateway.model.terms import FirstOrder, SecondOrder
 
 DAY_S = 86400.0
 #: names of recorded columns taken to be the room (ambient) temperature
@@ -341,31 +341,63 @@ def _chiller(ctx: _Ctx) -> list[Hypothesis]:
         # the motor's temperature, for the heat the chiller takes: a lag of the speed or of a motor current
         proxies = [n] + [f for f in ctx.model.factors if ctx.info[f].group == group and ctx.info[f].is_current_sq
                          and not ctx.info[f].is_rotor]
-        settings: dict[str, list[Setting]] = {}
+        chiller: dict[str, list[Setting]] = {}
+        loop: dict[str, list[Setting]] = {}
+        late = _late_heat(ctx)
         for a in ctx.axes:
-            grid = []
+            chiller[a], loop[a] = [], []
             for f in _motor_shapes(ctx, a, n, stator_only=True):
                 shape = ctx.base_terms(a, f)
-                grid.append(Setting(params=(("path_shape", f), ("proxy", "none"), ("motor_tau_s", 0.0)),
-                                    chain=(flag,), signs=(-1,),
-                                    components=(Component((Part(flag.name, shape),), f"on, as {f}"),)))
+                chiller[a].append(Setting(params=(("path_shape", f), ("proxy", "none"), ("motor_tau_s", 0.0)),
+                                          chain=(flag,), signs=(-1,),
+                                          components=(Component((Part(flag.name, shape),), f"on, as {f}"),)))
                 for proxy in proxies:
                     for tau in log_grid(2 * ctx.dt, 6 * 3600.0, 3):
-                        prod = Product(name=safe_name(f"{n}_on_x_{proxy}_lag{round(tau)}s", ctx.taken()),
-                                       of=(flag.name, proxy), lag_s=(0.0, tau), unit=ctx.info[proxy].unit,
-                                       note=f"running flag times a lag ({_tau_text(tau)}) of {proxy}: motor "
-                                            "temperature")
-                        grid.append(Setting(params=(("path_shape", f), ("proxy", proxy), ("motor_tau_s", tau)),
-                                            chain=(flag, prod), signs=(-1,),
-                                            components=(Component((Part(prod.name, shape),), f"as {f}"),)))
-            settings[a] = grid
+                        prod = _motor_heat(ctx, n, flag, proxy, tau)
+                        chiller[a].append(Setting(params=(("path_shape", f), ("proxy", proxy), ("motor_tau_s", tau)),
+                                                  chain=(flag, prod), signs=(-1,),
+                                                  components=(Component((Part(prod.name, shape),), f"as {f}"),)))
+                    # a coolant loop: the heat taken from the motor comes back after a transport delay
+                    for tau in (ctx.dt,):  # the heat the coolant takes follows the motor's heat closely
+                        prod = _motor_heat(ctx, n, flag, proxy, tau)
+                        for d, land, label in late:
+                            loop[a].append(Setting(
+                                params=(("path_shape", f), ("proxy", proxy), ("motor_tau_s", tau), *d, *land[0]),
+                                chain=(flag, prod), signs=(-1, 1),
+                                components=(Component((Part(prod.name, shape),), f"taken at the motor, as {f}"),
+                                            Component((Part(prod.name, land[1], d[0][1]),), label))))
         out.append(Hypothesis(
             key=f"chiller:{n}", family="chiller", title=f"coolant chiller switching with the spindle ({n} > 0)",
             explanation=("A chiller (or coolant pump) that runs only with the spindle takes heat out of the motor "
                          "~ its temperature over the coolant's while it runs, and nothing when it stops: a "
                          "switched heat sink at the motor, so the same path shape as the motor current's heat."),
-            settings=settings, shared=("proxy", "motor_tau_s")))
+            settings=chiller, shared=("proxy", "motor_tau_s")))
+        out.append(Hypothesis(
+            key=f"dead_time:coolant:{n}", family="dead_time",
+            title=f"coolant loop with a transport delay (dead time) on the motor heat of {n}",
+            explanation=("Coolant or oil takes heat out of the motor while it runs and releases it elsewhere (a "
+                         "tank, the casting it flows through) after a transport delay: a sink at the motor plus "
+                         "the same heat, late, through a lag. A dead time on a path."),
+            settings=loop, shared=("proxy", "motor_tau_s", "delay_s"), simpler=(f"chiller:{n}",)))
     return out
+
+
+def _motor_heat(ctx: _Ctx, n: str, flag: Flag, proxy: str, tau: float) -> Product:
+    return Product(name=safe_name(f"{n}_on_x_{proxy}_lag{round(tau)}s", ctx.taken()), of=(flag.name, proxy),
+                   lag_s=(0.0, tau), unit=ctx.info[proxy].unit,
+                   note=f"running flag times a lag ({_tau_text(tau)}) of {proxy}: motor temperature")
+
+
+def _late_heat(ctx: _Ctx) -> list[tuple[tuple[tuple[str, float], ...], tuple, str]]:
+    """(dead time, where the late heat lands, label): one lag, or two in series (a tank, then a casting)."""
+    delays = [d * 60.0 for d in (10, 20, 30, 60, 90) if d * 60.0 >= ctx.dt]
+    lands: list[tuple[tuple[tuple[str, float], ...], tuple]] = [
+        ((("tau_s", t),), lag(t)) for t in log_grid(5 * ctx.dt, 12 * 3600.0, 2)]
+    lands += [((("tau_fast_s", t1), ("tau_slow_s", t2)), (SecondOrder.from_time_constants(gain=1.0, tau1_s=t1,
+                                                                                           tau2_s=t2),))
+              for t1 in log_grid(5 * ctx.dt, 2 * 3600.0, 1.5) for t2 in log_grid(1800.0, 12 * 3600.0, 1.5)
+              if t2 >= 2 * t1]
+    return [((("delay_s", d),), land, f"late by {_tau_text(d)}") for d in delays for land in lands]
 
 
 def _extra_mode(ctx: _Ctx, f: str, taus: Sequence[float]) -> dict[str, list[Setting]]:
@@ -408,20 +440,19 @@ def _higher_order(ctx: _Ctx) -> list[Hypothesis]:
 
 def _dead_time(ctx: _Ctx) -> list[Hypothesis]:
     out = []
-    delays = [d * 60.0 for d in (2, 5, 10, 15, 20, 30, 45, 60, 90)]
-    delays = [d for d in delays if d >= ctx.dt]
+    late = _late_heat(ctx)
     for f in ctx.active:
         settings = {}
         for a in ctx.axes:
             base = ctx.base_terms(a, f)
             grid = []
-            for d in delays:
-                for tau in log_grid(5 * ctx.dt, 12 * 3600.0, 3):
-                    comps = [Component((Part(f, lag(tau), d),), f"delayed mode {_tau_text(tau)}")]
-                    if base:
-                        comps.insert(0, Component((Part(f, base),), "gain correction"))
-                    grid.append(Setting(params=(("delay_s", d), ("tau_s", tau)), components=tuple(comps),
-                                        limits=(1.0, math.inf) if base else (math.inf,)))
+            for d, (params, terms), label in late:
+                comps = [Component((Part(f, terms, d[0][1]),), label)]
+                if base:
+                    comps.insert(0, Component((Part(f, base),), "gain correction"))
+                grid.append(Setting(params=(*d, *params), components=tuple(comps),
+                                    limits=(1.0, math.inf) if base else (math.inf,)))
+            for d in sorted({d[0][1] for d, _, _ in late}):
                 if base:  # a share of the identified path itself arrives late
                     grid.append(Setting(params=(("delay_s", d), ("tau_s", "path")),
                                         components=(Component((Part(f, base, d),), "delayed share"),

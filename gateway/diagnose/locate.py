@@ -224,19 +224,21 @@ def change_points(stack: Stack, residual: np.ndarray, *, min_segment: int = 60, 
     out = []
     for r_i, (a, b) in enumerate(stack.bounds):
         seg = residual[a:b]
-        ok = np.isfinite(seg)
         t = (stack.time_s[a:b] - stack.time_s[a]) / 3600.0
+        lin = _LinearPieces(t, seg)
         cuts = [0, len(seg)]
-        sse_total = _lin_sse(t, seg, ok, 0, len(seg))
+        sse_total = lin.sse(0, len(seg))
         for _ in range(max_points):
             best = None
             for i in range(len(cuts) - 1):
                 s, e = cuts[i], cuts[i + 1]
-                base = _lin_sse(t, seg, ok, s, e)
-                for c in range(s + min_segment, e - min_segment, max(1, (e - s) // 200)):
-                    gain = base - _lin_sse(t, seg, ok, s, c) - _lin_sse(t, seg, ok, c, e)
-                    if best is None or gain > best[0]:
-                        best = (gain, c)
+                if e - s < 2 * min_segment + 1:
+                    continue
+                c = np.arange(s + min_segment, e - min_segment)
+                gain = lin.sse(s, e) - lin.sse(s, c) - lin.sse(c, e)
+                j = int(np.argmax(gain))
+                if best is None or gain[j] > best[0]:
+                    best = (float(gain[j]), int(c[j]))
             if best is None or best[0] < min_share * max(sse_total, 1e-300):
                 break
             cuts = sorted([*cuts, best[1]])
@@ -244,27 +246,36 @@ def change_points(stack: Stack, residual: np.ndarray, *, min_segment: int = 60, 
         for i in range(1, len(cuts) - 1):
             c = cuts[i]
             out.append(ChangePoint(recording=stack.names[r_i], time_h=float(t[c]), index=a + c,
-                                   slope_before_um_h=_slope(t, seg, ok, cuts[i - 1], c),
-                                   slope_after_um_h=_slope(t, seg, ok, c, cuts[i + 1])))
+                                   slope_before_um_h=lin.slope(cuts[i - 1], c),
+                                   slope_after_um_h=lin.slope(c, cuts[i + 1])))
     return out
 
 
-def _lin_sse(t: np.ndarray, y: np.ndarray, ok: np.ndarray, s: int, e: int) -> float:
-    m = ok[s:e]
-    if m.sum() < 3:
-        return 0.0
-    tt, yy = t[s:e][m], y[s:e][m]
-    A = np.column_stack([np.ones_like(tt), tt])
-    coef, *_ = np.linalg.lstsq(A, yy, rcond=None)
-    res = yy - A @ coef
-    return float(res @ res)
+class _LinearPieces:
+    """SSE and slope of a straight-line fit over any stretch, in O(1) from prefix sums (missing values skipped)."""
 
+    def __init__(self, t: np.ndarray, y: np.ndarray) -> None:
+        ok = np.isfinite(y)
+        t0 = np.where(ok, t, 0.0)
+        y0 = np.where(ok, y, 0.0)
+        parts = [ok.astype(float), t0, t0 * t0, y0, t0 * y0, y0 * y0]
+        self._c = [np.concatenate([[0.0], np.cumsum(p)]) for p in parts]
 
-def _slope(t: np.ndarray, y: np.ndarray, ok: np.ndarray, s: int, e: int) -> float:
-    m = ok[s:e]
-    if m.sum() < 3:
-        return 0.0
-    return float(np.polyfit(t[s:e][m], y[s:e][m], 1)[0])
+    def _sums(self, s: np.ndarray | int, e: np.ndarray | int) -> list[np.ndarray]:
+        return [c[e] - c[s] for c in self._c]
+
+    def sse(self, s: np.ndarray | int, e: np.ndarray | int) -> np.ndarray:
+        n, st, stt, sy, sty, syy = self._sums(s, e)
+        det = n * stt - st * st
+        with np.errstate(divide="ignore", invalid="ignore"):
+            fit = np.where(det > 1e-12, (stt * sy * sy - 2 * st * sy * sty + n * sty * sty) / det,
+                           np.where(n > 0, sy * sy / np.maximum(n, 1), 0.0))
+        return np.maximum(syy - fit, 0.0)
+
+    def slope(self, s: int, e: int) -> float:
+        n, st, stt, sy, sty, _ = self._sums(s, e)
+        det = n * stt - st * st
+        return float((n * sty - st * sy) / det) if det > 1e-12 else 0.0
 
 
 # ------------------------------------------------------------------------------------- operating states --

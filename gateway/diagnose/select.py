@@ -64,10 +64,34 @@ class Fold:
     block: np.ndarray  # (n,) block id 0..K-1, or BURN_IN
     fixed: np.ndarray  # (n, q) fixed columns (offsets, accepted, artefacts)
 
+    def __post_init__(self) -> None:
+        k = int(self.block.max()) + 1
+        # contiguous runs of one block: segment sums land in their block's slot (burn-in: slot k)
+        starts = np.concatenate([[0], np.flatnonzero(np.diff(self.block)) + 1])
+        slot = np.where(self.block[starts] >= 0, self.block[starts], k)
+        scale = np.sqrt(np.einsum("ij,ij->j", self.fixed, self.fixed))
+        scale[scale == 0] = 1.0
+        F = self.fixed / scale
+        object.__setattr__(self, "_k", k)
+        object.__setattr__(self, "_starts", starts)
+        object.__setattr__(self, "_slot", slot)
+        object.__setattr__(self, "_fscale", scale)
+        object.__setattr__(self, "_F", F)
+        object.__setattr__(self, "_FF", self.sums(F[:, :, None] * F[:, None, :]))
+        object.__setattr__(self, "_Fr", self.sums(F * self.r[:, None]))
+        object.__setattr__(self, "_rr", self.sums(self.r * self.r))
+
     @property
     def k(self) -> int:
         """Number of held-out blocks."""
-        return int(self.block.max()) + 1
+        return self._k  # type: ignore[attr-defined]
+
+    def sums(self, rows: np.ndarray) -> np.ndarray:
+        """Per-block sums of ``rows`` (first axis: windows) into K + 1 slots (the last: burn-in)."""
+        seg = np.add.reduceat(rows, self._starts, axis=0)  # type: ignore[attr-defined]
+        out = np.zeros((self.k + 1, *rows.shape[1:]))
+        np.add.at(out, self._slot, seg)  # type: ignore[attr-defined]
+        return out
 
 
 @dataclass
@@ -97,28 +121,27 @@ class GridScores:
 
 
 def _grams(fold: Fold, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per-block (G_b, h_b, s_b) of the scaled design [fixed, X], and the scale."""
-    D = np.column_stack([fold.fixed, X]) if X.size else fold.fixed
-    scale = np.sqrt(np.einsum("ij,ij->j", D, D))
-    scale[scale == 0] = 1.0
-    D = D / scale
-    m = D.shape[1]
-    k = fold.k
-    # one extra slot (index k) collects the burn-in rows: in every training set, in no held-out set
-    G = np.zeros((k + 1, m, m))
-    h = np.zeros((k + 1, m))
-    s = np.zeros(k + 1)
-    # blocks are contiguous runs of rows
-    edges = np.flatnonzero(np.diff(fold.block)) + 1
-    starts = np.concatenate([[0], edges])
-    stops = np.concatenate([edges, [len(fold.r)]])
-    for a, b in zip(starts, stops, strict=True):
-        j = fold.block[a] if fold.block[a] >= 0 else k
-        Db, rb = D[a:b], fold.r[a:b]
-        G[j] += Db.T @ Db
-        h[j] += Db.T @ rb
-        s[j] += rb @ rb
-    return G, h, s, scale
+    """Per-block (G_b, h_b, s_b) of the scaled design [fixed, X] and the scale (slot K: burn-in rows).
+
+    The fixed columns' part is computed once per fold; a setting adds only its own columns' products.
+    """
+    F = fold._F  # type: ignore[attr-defined]
+    q, p = F.shape[1], X.shape[1]
+    xs = np.sqrt(np.einsum("ij,ij->j", X, X)) if p else np.zeros(0)
+    xs[xs == 0] = 1.0
+    scale = np.concatenate([fold._fscale, xs])  # type: ignore[attr-defined]
+    G = np.zeros((fold.k + 1, q + p, q + p))
+    h = np.zeros((fold.k + 1, q + p))
+    G[:, :q, :q] = fold._FF  # type: ignore[attr-defined]
+    h[:, :q] = fold._Fr  # type: ignore[attr-defined]
+    if p:
+        Xs = X / xs
+        XF = fold.sums(Xs[:, :, None] * F[:, None, :])
+        G[:, q:, :q] = XF
+        G[:, :q, q:] = XF.transpose(0, 2, 1)
+        G[:, q:, q:] = fold.sums(Xs[:, :, None] * Xs[:, None, :])
+        h[:, q:] = fold.sums(Xs * fold.r[:, None])
+    return G, h, fold._rr.copy(), scale  # type: ignore[attr-defined]
 
 
 def _folds(G: np.ndarray, h: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, ...]:
