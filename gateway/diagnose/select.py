@@ -136,11 +136,16 @@ def _grams(fold: Fold, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     h[:, :q] = fold._Fr  # type: ignore[attr-defined]
     if p:
         Xs = X / xs
-        XF = fold.sums(Xs[:, :, None] * F[:, None, :])
-        G[:, q:, :q] = XF
-        G[:, :q, q:] = XF.transpose(0, 2, 1)
-        G[:, q:, q:] = fold.sums(Xs[:, :, None] * Xs[:, None, :])
-        h[:, q:] = fold.sums(Xs * fold.r[:, None])
+        # one matrix product per contiguous run of a block: wide designs (a decay per recording) stay cheap
+        starts = fold._starts  # type: ignore[attr-defined]
+        stops = np.append(starts[1:], len(fold.r))
+        for a, b, j in zip(starts, stops, fold._slot, strict=True):  # type: ignore[attr-defined]
+            Xb = Xs[a:b]
+            XF = Xb.T @ F[a:b]
+            G[j, q:, :q] += XF
+            G[j, :q, q:] += XF.T
+            G[j, q:, q:] += Xb.T @ Xb
+            h[j, q:] += Xb.T @ fold.r[a:b]
     return G, h, fold._rr.copy(), scale  # type: ignore[attr-defined]
 
 
