@@ -287,7 +287,13 @@ def _evidence(stack: Stack, axes: Sequence[_Axis], h: Hypothesis) -> dict[str, A
 
 
 def _judge(t: Trial, o: Options) -> str:
-    """Decide which axes join and whether the hypothesis passes; notes say why an axis does not."""
+    """Decide which axes join and whether the hypothesis passes; notes say why an axis does not.
+
+    It must be relevant on at least one axis (its contribution above the relevance bound); once it is,
+    it joins every axis whose held-out blocks it improves consistently and enough: one heat source
+    moves the tool in every direction, by more on some axes than on others.
+    """
+    relevant = False
     for e in t.evidence.values():
         if e.setting is None:
             e.note = "no plausible setting"
@@ -295,15 +301,21 @@ def _judge(t: Trial, o: Options) -> str:
             e.note = f"blocks do not improve consistently (p = {e.p:.2g})"
         elif e.gain < o.min_gain:
             e.note = f"held-out error down only {100 * e.gain:.1f} % (< {100 * o.min_gain:.0f} %)"
-        elif e.effect_rms_um < e.relevance_um:
-            e.note = f"contribution {e.effect_rms_um:.3g} um RMS below the relevance bound {e.relevance_um:.3g} um"
         else:
             e.included = True
+            if e.effect_rms_um >= e.relevance_um:
+                relevant = True
+            else:
+                e.note = f"contribution {e.effect_rms_um:.3g} um RMS, below the relevance bound {e.relevance_um:.3g} um"
     if not t.p_holm < o.alpha:
+        for e in t.evidence.values():
+            e.included = False
         return f"not significant (Holm p = {t.p_holm:.2g})"
-    if not t.axes:
+    if not relevant:
         notes = "; ".join(f"{a}: {e.note}" for a, e in t.evidence.items())
-        return f"significant overall but on no axis relevant: {notes}"
+        for e in t.evidence.values():
+            e.included = False
+        return f"significant but on no axis relevant: {notes}"
     return "passes"
 
 
