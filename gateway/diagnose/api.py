@@ -206,18 +206,31 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
         if f.noise.quantum_um > 0:
             out.append(f"axis {a}: the displacement is quantised in steps of {f.noise.quantum_um:.3g} um "
                        f"(noise floor {f.noise.quantum_um / math.sqrt(12):.3g} um RMS)")
+    used = set(d.model.info.get("experiments", []) or [])
+    seen = [n for n in st.names if n in used]
+    if seen:
+        out.append(f"{', '.join(seen)} (or part of it) identified the model: there the residual is a fit residual, "
+                   "not a test; diagnose on recordings the model has not seen")
     physics = [t for t in d.result.accepted if not t.hypothesis.artefact]
     if not physics:
-        out.append("nothing significant is missing: no hypothesis lowered the held-out error significantly "
-                   "(family-wise) and by a relevant amount")
-        best = max((t for t in d.result.trials if t.round == 1 and not t.hypothesis.artefact),
-                   key=lambda t: t.score, default=None)
+        artefacts = [t for t in d.result.accepted if t.hypothesis.artefact]
+        out.append("nothing significant is missing: no physical hypothesis lowered the held-out error "
+                   "significantly (family-wise) and by a relevant amount"
+                   + (" (what differs is a measurement artefact, below)" if artefacts else ""))
+        tried = [t for t in d.result.trials if t.round == 1 and not t.hypothesis.artefact]
+        best = min(tried, key=lambda t: (t.p_holm, -t.score), default=None)
         if best is not None:
             out.append(f"closest candidate: {best.hypothesis.title}: {best.verdict}")
     else:
         for t in physics:
             gain = ", ".join(f"{a} {100 * t.evidence[a].gain:.0f} %" for a in t.axes)
             out.append(f"missing physics: {t.hypothesis.title} (held-out squared error down {gain})")
+    for t in d.result.accepted:
+        rivals = [r.hypothesis.title for r in d.result.trials
+                  if r.round == t.round and r is not t and r.verdict.startswith("passes")]
+        if rivals:
+            out.append(f"{t.hypothesis.title}: these data are also consistent with {'; '.join(rivals[:3])} "
+                       "(they pass too; the one with fewer parameters, or a significantly better one, was taken)")
     for a, f in d.findings.items():
         for s in f.steps:
             out.append(f"axis {a}: a step of {s.size_um:+.3g} um within one window at {s.time_h:.2f} h "
