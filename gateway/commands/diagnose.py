@@ -64,7 +64,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "displacement of any axis (default 0.02)")
     p.add_argument("--min-gain", type=_share, default=0.1, metavar="SHARE",
                    help="relevance: share of an axis's held-out squared error it must remove (default 0.1)")
-    p.add_argument("--blocks", type=positive_int, default=12, metavar="K", help="held-out blocks of time (default 12)")
+    p.add_argument("--blocks", type=positive_int, default=16, metavar="K", help="held-out blocks of time (default 16)")
     p.add_argument("--split-by", metavar="COLUMN",
                    help="a recording holds several runs one after the other (e.g. a day number column): start a "
                         "new recording wherever COLUMN changes value; each starts in its own equilibrium")

@@ -39,7 +39,7 @@ class Options:
     min_gain: float = 0.1  # share of an axis's held-out squared error the hypothesis must remove
     min_effect_share: float = 0.02  # its contribution's RMS, as a share of the largest peak |displacement|
     min_effect_um: float = 0.0  # ... and at least this many micrometres
-    blocks: int = 12
+    blocks: int = 16
     max_rounds: int = 4
 
 
