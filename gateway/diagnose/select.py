@@ -56,41 +56,34 @@ def make_blocks(bounds: Sequence[tuple[int, int]], valid: np.ndarray, k: int) ->
     return block
 
 
-@dataclass(frozen=True)
 class Fold:
-    """The design of one axis: target, blocks and the fixed columns every fit carries."""
+    """The design of one axis: target ``r`` (n,), block ids (n,), and the fixed columns (n, q) every fit carries.
 
-    r: np.ndarray  # (n,) residual on the windows used
-    block: np.ndarray  # (n,) block id 0..K-1, or BURN_IN
-    fixed: np.ndarray  # (n, q) fixed columns (offsets, accepted, artefacts)
+    The fixed columns' per-block products are computed once here; each setting of a hypothesis then adds
+    only its own columns' products.
+    """
 
-    def __post_init__(self) -> None:
-        k = int(self.block.max()) + 1
-        # contiguous runs of one block: segment sums land in their block's slot (burn-in: slot k)
-        starts = np.concatenate([[0], np.flatnonzero(np.diff(self.block)) + 1])
-        slot = np.where(self.block[starts] >= 0, self.block[starts], k)
-        scale = np.sqrt(np.einsum("ij,ij->j", self.fixed, self.fixed))
+    def __init__(self, *, r: np.ndarray, block: np.ndarray, fixed: np.ndarray) -> None:
+        self.r = r
+        self.block = block
+        self.k = int(block.max()) + 1  #: held-out blocks; burn-in rows sum into slot k
+        # contiguous runs of one block, and the slot each run's sums land in
+        self.starts = np.concatenate([[0], np.flatnonzero(np.diff(block)) + 1])
+        self.stops = np.append(self.starts[1:], len(r))
+        self.slot = np.where(block[self.starts] >= 0, block[self.starts], self.k)
+        scale = np.sqrt(np.einsum("ij,ij->j", fixed, fixed))
         scale[scale == 0] = 1.0
-        F = self.fixed / scale
-        object.__setattr__(self, "_k", k)
-        object.__setattr__(self, "_starts", starts)
-        object.__setattr__(self, "_slot", slot)
-        object.__setattr__(self, "_fscale", scale)
-        object.__setattr__(self, "_F", F)
-        object.__setattr__(self, "_FF", self.sums(F[:, :, None] * F[:, None, :]))
-        object.__setattr__(self, "_Fr", self.sums(F * self.r[:, None]))
-        object.__setattr__(self, "_rr", self.sums(self.r * self.r))
-
-    @property
-    def k(self) -> int:
-        """Number of held-out blocks."""
-        return self._k  # type: ignore[attr-defined]
+        self.fixed_scale = scale
+        self.F = fixed / scale
+        self.FF = self.sums(self.F[:, :, None] * self.F[:, None, :])
+        self.Fr = self.sums(self.F * r[:, None])
+        self.rr = self.sums(r * r)
 
     def sums(self, rows: np.ndarray) -> np.ndarray:
         """Per-block sums of ``rows`` (first axis: windows) into K + 1 slots (the last: burn-in)."""
-        seg = np.add.reduceat(rows, self._starts, axis=0)  # type: ignore[attr-defined]
+        seg = np.add.reduceat(rows, self.starts, axis=0)
         out = np.zeros((self.k + 1, *rows.shape[1:]))
-        np.add.at(out, self._slot, seg)  # type: ignore[attr-defined]
+        np.add.at(out, self.slot, seg)
         return out
 
 
@@ -121,32 +114,27 @@ class GridScores:
 
 
 def _grams(fold: Fold, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per-block (G_b, h_b, s_b) of the scaled design [fixed, X] and the scale (slot K: burn-in rows).
-
-    The fixed columns' part is computed once per fold; a setting adds only its own columns' products.
-    """
-    F = fold._F  # type: ignore[attr-defined]
+    """Per-block (G_b, h_b, s_b) of the scaled design [fixed, X] and the scale (slot K: burn-in rows)."""
+    F = fold.F
     q, p = F.shape[1], X.shape[1]
     xs = np.sqrt(np.einsum("ij,ij->j", X, X)) if p else np.zeros(0)
     xs[xs == 0] = 1.0
-    scale = np.concatenate([fold._fscale, xs])  # type: ignore[attr-defined]
+    scale = np.concatenate([fold.fixed_scale, xs])
     G = np.zeros((fold.k + 1, q + p, q + p))
     h = np.zeros((fold.k + 1, q + p))
-    G[:, :q, :q] = fold._FF  # type: ignore[attr-defined]
-    h[:, :q] = fold._Fr  # type: ignore[attr-defined]
+    G[:, :q, :q] = fold.FF
+    h[:, :q] = fold.Fr
     if p:
         Xs = X / xs
         # one matrix product per contiguous run of a block: wide designs (a decay per recording) stay cheap
-        starts = fold._starts  # type: ignore[attr-defined]
-        stops = np.append(starts[1:], len(fold.r))
-        for a, b, j in zip(starts, stops, fold._slot, strict=True):  # type: ignore[attr-defined]
+        for a, b, j in zip(fold.starts, fold.stops, fold.slot, strict=True):
             Xb = Xs[a:b]
             XF = Xb.T @ F[a:b]
             G[j, q:, :q] += XF
             G[j, :q, q:] += XF.T
             G[j, q:, q:] += Xb.T @ Xb
             h[j, q:] += Xb.T @ fold.r[a:b]
-    return G, h, fold._rr.copy(), scale  # type: ignore[attr-defined]
+    return G, h, fold.rr.copy(), scale
 
 
 def _folds(G: np.ndarray, h: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -181,7 +169,7 @@ def grid_scores(fold: Fold, designs: Sequence[np.ndarray], *, signs: Sequence[np
     full = np.full(n_grid, np.inf)
     gains_f: list[np.ndarray] = []
     gains_a: list[np.ndarray] = []
-    q = fold.fixed.shape[1]
+    q = fold.F.shape[1]
     _, _, _, G0tr, h0tr, _, G0, h0, s0 = _folds(*_grams(fold, np.zeros((len(fold.r), 0)))[:3])
     without = _quad(G0, h0, s0, _solve(G0tr, h0tr))
     for g, X in enumerate(designs):
@@ -249,12 +237,6 @@ def choose(scores: dict[str, GridScores], keys: dict[str, Sequence[object]] | No
                          gains=sc.gains_all[best[a]], sse=float(sc.full[best[a]]),
                          admissible=bool(np.isfinite(sc.full[best[a]])), without=sc.without)
     return out
-
-
-def cv_grid(fold: Fold, designs: Sequence[np.ndarray], *, signs: Sequence[np.ndarray] | None = None,
-            limits: Sequence[np.ndarray] | None = None) -> GridFit:
-    """Cross-validate a hypothesis on one axis alone (see :func:`grid_scores` and :func:`choose`)."""
-    return choose({"axis": grid_scores(fold, designs, signs=signs, limits=limits)})["axis"]
 
 
 def _padded(rows: Sequence[np.ndarray]) -> np.ndarray:
