@@ -96,6 +96,9 @@ class Hypothesis:
     simpler: tuple[str, ...] = ()
     #: machine-wide parameters (a transport delay, a bearing's time constant): one value for every axis
     shared: tuple[str, ...] = ()
+    #: a structural change of an identified path (an extra mode, a dead time) rather than a named mechanism:
+    #: it can mimic most slow heat sources, so it counts one parameter more when hypotheses are ranked
+    generic: bool = False
 
     @property
     def complexity(self) -> int:
@@ -435,7 +438,7 @@ def _higher_order(ctx: _Ctx) -> list[Hypothesis]:
         explanation=(f"The path from {f} has one more thermal mode than identified (heat reaching a second "
                      "part), within the time scale of the identification runs; the identified terms keep "
                      "their shape, their gain may change."),
-        settings=_extra_mode(ctx, f, taus)) for f in ctx.active]
+        settings=_extra_mode(ctx, f, taus), generic=True) for f in ctx.active]
 
 
 def _dead_time(ctx: _Ctx) -> list[Hypothesis]:
@@ -464,7 +467,7 @@ def _dead_time(ctx: _Ctx) -> list[Hypothesis]:
             explanation=(f"Part of the heat of {f} arrives late: coolant or oil carries it away and releases it "
                          "elsewhere after a transport delay, or it crosses a long conduction path. A dead time "
                          "on a path, beside the identified immediate part."),
-            settings=settings, simpler=(f"higher_order:{f}", f"slow_mode:{f}"), shared=("delay_s",)))
+            settings=settings, simpler=(f"higher_order:{f}", f"slow_mode:{f}"), shared=("delay_s",), generic=True))
     return out
 
 

@@ -324,16 +324,17 @@ def _occam(passing: Sequence[Trial], tried: Sequence[Trial], o: Options) -> Tria
 
     Walks from the fewest free parameters up (ties: the larger held-out gain first). Physics that says
     where a heat source sits or what shape an input has gives a hypothesis few parameters; a generic
-    extra mode or dead time on a path fits nearly anything the spindle does, so it has to earn its
-    parameters on the held-out blocks. A hypothesis that nests simpler ones (a dead time nests the plain
-    extra mode) must also beat each of them significantly, passing or not.
+    extra mode or dead time on a path fits nearly anything the spindle does, so it counts one parameter
+    more and has to earn its parameters on the held-out blocks. A hypothesis that nests simpler ones (a
+    dead time nests the plain extra mode) must also beat each of them significantly, passing or not.
     """
     by_key = {t.hypothesis.key: t for t in tried}
 
     def earns(t: Trial) -> bool:
         return all(one_sided_p(_pair(by_key[k], t)) < o.alpha for k in t.hypothesis.simpler if k in by_key)
 
-    ordered = sorted((t for t in passing if earns(t)), key=lambda t: (t.hypothesis.complexity, -t.score))
+    ordered = sorted((t for t in passing if earns(t)),
+                     key=lambda t: (t.hypothesis.complexity + t.hypothesis.generic, -t.score))
     if not ordered:
         return max(passing, key=lambda t: t.score)
     current = ordered[0]
