@@ -21,7 +21,9 @@ def run_show(args: argparse.Namespace) -> int:
     """Print the model's paths."""
     model = load_model(args.model)
     print(f"model {args.model}: machine {model.machine or '?'}, axes {', '.join(model.axes)}, "
-          f"{len(model.factors)} factors")
+          f"{len(model.factors)} factors" + (f", {len(model.inputs)} derived inputs" if model.inputs else ""))
+    for inp in model.inputs:  # added by diagnosis: computed from recorded columns
+        print(f"derived input {inp.name}: {inp.describe()}" + (f" ({inp.note})" if inp.note else ""))
     info = dict(model.info)
     if info.get("method"):
         print(f"identified with the {info['method']} method from {', '.join(info.get('experiments', []))}")
