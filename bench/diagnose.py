@@ -179,6 +179,13 @@ class Row:
     fresh_before_um: float
     fresh_after_um: float
     wall_s: float
+    true_um: float = math.nan  # RMS of the hidden effect on its main axis (ground truth, for scoring only)
+    relevance_um: float = math.nan  # the relevance bound diagnosis used
+
+    @property
+    def relevant(self) -> bool:
+        """Whether the hidden effect reaches the bound diagnosis calls relevant (by design not named below)."""
+        return not self.true_um < self.relevance_um
 
     @property
     def fresh_gain(self) -> float:
@@ -248,10 +255,16 @@ def run_case(name: str, seed: int, model: ThermalModel, *, report: Path | None =
         write_report(d, report / f"{name.replace(' ', '-')}-{seed}", model_name="baseline",
                      title=f"{name}, seed {seed}")
     fresh_rec = fresh.recording()
+    true_um = math.nan
+    if seen.contributions_um:
+        contrib = next(iter(seen.contributions_um.values()))[:, i]
+        true_um = float(np.std(contrib))
+    trial = next((t for t in d.result.trials if a in t.evidence), None)
     return Row(case=name, seed=seed, accepted=d.accepted_physics, artefacts=d.artefacts, named_first=named_first,
                named_any=named_any, located=text, cv_before_um=d.before[a].rms_um, cv_after_um=d.after[a].rms_um,
                fresh_before_um=fresh_rms(model, fresh_rec), fresh_after_um=fresh_rms(d.extended, fresh_rec),
-               wall_s=wall)
+               wall_s=wall, true_um=true_um,
+               relevance_um=trial.evidence[a].relevance_um if trial is not None else math.nan)
 
 
 def main() -> int:
@@ -268,7 +281,7 @@ def main() -> int:
     report = Path(args.report) if args.report else None
     rows: list[Row] = []
     print(f"{'case':<18} {'seed':>4}  {'named':<6} {'accepted (first = the name given)':<58} {'located':<24} "
-          f"{'CV RMS main axis um':<20} {'fresh RMS um (gain)':<22} {'s':>5}")
+          f"{'CV RMS main axis um':<20} {'fresh RMS um (gain)':<22} {'effect/bound um':<16} {'s':>5}")
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         model = baseline(seed)
         for name in names:
@@ -279,8 +292,8 @@ def main() -> int:
                 acc += " | artefacts: " + "; ".join(r.artefacts)
             print(f"{r.case:<18} {r.seed:>4}  {('yes' if r.named_first else 'any' if r.named_any else 'no'):<6} "
                   f"{acc[:58]:<58} {r.located[:24]:<24} {r.cv_before_um:6.3f} -> {r.cv_after_um:6.3f}     "
-                  f"{r.fresh_before_um:6.3f} -> {r.fresh_after_um:6.3f} ({100 * r.fresh_gain:+4.0f} %) {r.wall_s:5.1f}",
-                  flush=True)
+                  f"{r.fresh_before_um:6.3f} -> {r.fresh_after_um:6.3f} ({100 * r.fresh_gain:+4.0f} %) "
+                  f"{r.true_um:5.2f} / {r.relevance_um:4.2f}   {r.wall_s:5.1f}", flush=True)
     print()
     print("summary per case (n seeds):")
     for name in names:
@@ -296,9 +309,11 @@ def main() -> int:
         anyn = sum(r.named_any for r in rs)
         both = sum(r.named_first and r.fresh_gain >= 0.3 for r in rs)
         gains = [100 * r.fresh_gain for r in rs]
+        big = [r for r in rs if r.relevant]
         print(f"  {name:<18} named first {first}/{len(rs)}, named at all {anyn}/{len(rs)}, named first with fresh RMS "
               f"-30 % or better {both}/{len(rs)}; fresh RMS gain median {np.median(gains):+.0f} % "
-              f"(min {min(gains):+.0f} %)  (aim: >= 90 % named, >= 30 % gain)")
+              f"(min {min(gains):+.0f} %); where the hidden effect reaches the relevance bound: named first "
+              f"{sum(r.named_first for r in big)}/{len(big)}  (aim: >= 90 % named, >= 30 % gain)")
     return 0
 
 

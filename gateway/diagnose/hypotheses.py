@@ -195,7 +195,9 @@ def _lag_pairs(lo1: float, hi1: float, lo2: float, hi2: float) -> list[tuple[flo
 def _column_settings(ctx: _Ctx, col: str) -> list[Setting]:
     inp = Column(name=safe_name(col, ctx.taken()), column=col, unit="", note=f"recorded column {col}")
     out = []
-    for t1, t2 in _lag_pairs(ctx.dt, 4 * 3600.0, 2 * 3600.0, max(3 * DAY_S, ctx.span_s)):
+    # a casting follows the room within hours, a massive bed within a day: longer lags would only fit a
+    # drift and extrapolate it
+    for t1, t2 in _lag_pairs(ctx.dt, 4 * 3600.0, 2 * 3600.0, DAY_S):
         comps = [Component((Part(inp.name, lag(t1)),), f"lag {_tau_text(t1)}")]
         params: list[tuple[str, float | str]] = [("tau_s", t1)]
         nuis = [("decay", t1)]
