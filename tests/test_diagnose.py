@@ -267,3 +267,31 @@ def test_a_daily_cycle_shows_as_a_spectral_line_and_as_the_daily_hypothesis():
     d = diagnose(model, [rec], options=Options(blocks=8))
     assert d.accepted_physics == ["room_daily"]
     assert d.after["z"].rms_um == pytest.approx(0.1, rel=0.2)
+
+
+def test_extension_gives_a_delayed_part_its_own_path_and_keeps_input_names_apart():
+    from gateway.diagnose.data import Component, Part, lag
+    from gateway.diagnose.extend import extend_model
+    from gateway.diagnose.hypotheses import Hypothesis, Setting
+    from gateway.diagnose.search import Term, Trial
+    from gateway.model.inputs import Product
+
+    model, rec, stack = _synthetic(np.zeros(1500))
+    hyp = Hypothesis(key="h", family="dead_time", title="h", explanation="", settings={})
+    sq = Product(name="speed_sq", of=("speed", "speed"))
+    clash = Product(name="speed_sq", of=("speed", "speed"), lag_s=(0.0, 600.0))  # same name, other input
+    settings = [Setting(params=(), components=(Component((Part("speed", lag(3600.0), 900.0),)),)),
+                Setting(params=(), chain=(sq,), components=(Component((Part("speed_sq", lag(1800.0)),)),)),
+                Setting(params=(), chain=(clash,), components=(Component((Part("speed_sq", lag(900.0)),)),))]
+    gains = [0.004, 2e-6, -1e-6]
+    terms = []
+    for s, g in zip(settings, gains, strict=True):
+        col = stack.column(s.components[0], s.chain)
+        terms.append(Term(trial=Trial(hypothesis=hyp, round=1, evidence={}, p=0.0), axis="z", setting=s,
+                          gains=np.array([g]), contribution=g * col))
+    ext = extend_model(model, {"z": terms})
+    assert [d.name for d in ext.inputs] == ["speed_delay900s", "speed_sq", "speed_sq_"]
+    assert ext.path("z", "speed_delay900s").delay_s == 900.0
+    assert ext.path("z", "speed").terms == model.path("z", "speed").terms  # the identified path is untouched
+    est = estimate(ext, rec, align="none").estimated[0]
+    assert np.abs(est - (stack.base[0] + sum(t.contribution for t in terms))).max() < 1e-9

@@ -14,7 +14,7 @@ from dataclasses import replace
 from typing import Any
 
 from gateway.diagnose.search import Term
-from gateway.model.inputs import DerivedInput, Same
+from gateway.model.inputs import DerivedInput, Flag, Product, Same, Sum
 from gateway.model.model import PathTF, ThermalModel
 from gateway.model.terms import FirstOrder, SecondOrder
 from gateway.model.terms import Term as ModelTerm
@@ -36,23 +36,34 @@ def extend_model(model: ThermalModel, terms: Mapping[str, Sequence[Term]], *,
             return model.path(axis, name).delay_s
         return None
 
+    defined = {d.name: d for d in inputs}
     for axis, axis_terms in terms.items():
         for t in axis_terms:
             if t.trial.hypothesis.artefact:
                 continue
+            rename: dict[str, str] = {}
             for d in t.setting.chain:
-                if d.name not in names:
+                # names encode the parameters; a clash with another definition gets a suffix
+                d = _renamed_sources(d, rename)
+                name = d.name
+                while name in defined and defined[name] != replace(d, name=name):
+                    name += "_"
+                if name != d.name:
+                    rename[d.name] = name
+                    d = replace(d, name=name)
+                if name not in defined:
                     inputs.append(d)
-                    names.add(d.name)
+                    names.add(name)
+                    defined[name] = d
             for comp, c in zip(t.setting.components, t.gains, strict=True):
                 for part in comp.parts:
-                    target = part.input
+                    target = rename.get(part.input, part.input)
                     have = path_delay(axis, target)
                     if have is not None and abs(have - part.delay_s) > 1e-9:
-                        target = f"{part.input}_delay{round(part.delay_s)}s"
+                        source = target
+                        target = f"{source}_delay{round(part.delay_s)}s"
                         if target not in names:
-                            inputs.append(Same(name=target, of=part.input,
-                                               note=f"{part.input} behind its own dead time"))
+                            inputs.append(Same(name=target, of=source, note=f"{source} behind its own dead time"))
                             names.add(target)
                     added.setdefault((axis, target), []).extend(term.with_gain(float(c) * term.gain)
                                                                 for term in part.terms)
@@ -64,6 +75,15 @@ def extend_model(model: ThermalModel, terms: Mapping[str, Sequence[Term]], *,
         paths.append(PathTF(axis=axis, factor=name, terms=merge_terms((*old.terms, *new)),
                             delay_s=delays[(axis, name)], sd=old.sd))
     return probe.with_paths(paths, info={**model.info, **(info or {})})
+
+
+def _renamed_sources(d: DerivedInput, rename: Mapping[str, str]) -> DerivedInput:
+    """``d`` reading renamed inputs under their new names."""
+    if isinstance(d, Product | Sum):
+        return replace(d, of=tuple(rename.get(x, x) for x in d.of))
+    if isinstance(d, Flag | Same):
+        return replace(d, of=rename.get(d.of, d.of))
+    return d
 
 
 def merge_terms(terms: Sequence[ModelTerm]) -> tuple[ModelTerm, ...]:
