@@ -117,6 +117,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {a}: RMS {b.rms_um:.3f} -> {af.rms_um:.3f} um, max |error| {b.max_abs_error_um:.3f} -> "
               f"{af.max_abs_error_um:.3f} um ({b.max_error_pct_of_peak:.1f} -> {af.max_error_pct_of_peak:.1f} % of "
               f"peak {b.peak_um:.3f} um)")
+    if validation:
+        print("validation recordings are estimated from their first window with the model's state at rest there "
+              "(as `cncgw estimate` does): a path from a recorded column (room) starts with an error its own lag "
+              "takes to decay")
     for v in validation:
         print(f"validation {v['recording']} (never fitted):")
         for a, m in v["before"].items():

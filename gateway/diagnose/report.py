@@ -22,7 +22,7 @@ def _params(params: Sequence[tuple[str, object]], sd: Mapping[str, float]) -> st
         if isinstance(v, float):
             text = (f"{v / 3600:.3g} h" if v >= 5400 else f"{v / 60:.3g} min") if k.endswith("_s") else f"{v:.4g}"
             if k in sd and math.isfinite(sd[k]):
-                text += f" (x/ {sd[k]:.2g})"
+                text += f" (spread over the folds: a factor {sd[k]:.2g})"
             out.append(f"{k} = {text}")
         else:
             out.append(f"{k} = {v}")
