@@ -59,9 +59,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--validate", nargs="+", metavar="RECORDING", default=[],
                    help="recordings never used for fitting or selection: estimated with the model before and after")
     p.add_argument("--alpha", type=_share, default=0.05, help="family-wise error rate per round (default 0.05)")
-    p.add_argument("--min-effect", type=_share, default=0.015, metavar="SHARE",
+    p.add_argument("--min-effect", type=_share, default=0.02, metavar="SHARE",
                    help="relevance: an accepted term's contribution RMS must reach this share of the largest peak "
-                        "displacement of any axis (default 0.015)")
+                        "displacement of any axis (default 0.02)")
     p.add_argument("--min-gain", type=_share, default=0.1, metavar="SHARE",
                    help="relevance: share of an axis's held-out squared error it must remove (default 0.1)")
     p.add_argument("--blocks", type=positive_int, default=16, metavar="K", help="held-out blocks of time (default 16)")

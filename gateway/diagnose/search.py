@@ -37,7 +37,7 @@ class Options:
     alpha: float = 0.05  # family-wise error rate of one round (Holm over its hypotheses)
     alpha_axis: float = 0.05  # an axis joins an accepted hypothesis when its own blocks improve at this level
     min_gain: float = 0.1  # share of an axis's held-out squared error the hypothesis must remove
-    min_effect_share: float = 0.015  # its contribution's RMS, as a share of the largest peak |displacement|
+    min_effect_share: float = 0.02  # its contribution's RMS, as a share of the largest peak |displacement|
     min_effect_um: float = 0.0  # ... and at least this many micrometres
     blocks: int = 16
     max_rounds: int = 4
