@@ -1,6 +1,7 @@
 """Diagnosis on concealed effects: the simulated machine with one effect on, diagnosed blind.
 
-    .venv/bin/python bench/diagnose.py [--seeds N] [--cases a,b,...] [--days D] [--report DIR]
+    .venv/bin/python bench/diagnose.py [--seeds N] [--first-seed S] [--cases a,b,...] [--min-effect SHARE]
+                                       [--report DIR]
 
 For every seed: the baseline model is identified on the paper's 9 identification runs with every effect
 off (a controlled shop; sensor noise drawn from the seed). For every case and seed: a multi-day production
@@ -32,7 +33,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from gateway.diagnose import Diagnosis, diagnose, factor_infos, write_report
+from gateway.diagnose import Diagnosis, Options, diagnose, factor_infos, write_report
 from gateway.identify import identify
 from gateway.model import ThermalModel
 from gateway.profile import load_profile
@@ -233,14 +234,15 @@ def located(case: Case, d: Diagnosis, sim) -> tuple[str, int]:
     return text, i
 
 
-def run_case(name: str, seed: int, model: ThermalModel, *, report: Path | None = None) -> Row:
+def run_case(name: str, seed: int, model: ThermalModel, *, report: Path | None = None,
+             options: Options | None = None) -> Row:
     """Diagnose one case blind and score it against the truth it never saw."""
     case = CASES[name]
     profile = load_profile(PROFILE)
     seen = simulate_case(case, seed)
     fresh = simulate_case(case, seed, fresh=True)
     t0 = time.perf_counter()
-    d = diagnose(model, [seen.recording()], factors=factor_infos(profile))
+    d = diagnose(model, [seen.recording()], factors=factor_infos(profile), options=options)
     wall = time.perf_counter() - t0
     families = [t.hypothesis.family for t in d.result.accepted if not t.hypothesis.artefact]
     text, i = located(case, d, seen)
@@ -273,6 +275,8 @@ def main() -> int:
     ap.add_argument("--first-seed", type=int, default=1)
     ap.add_argument("--cases", default=",".join(CASES), help="comma-separated case names")
     ap.add_argument("--report", help="write every diagnosis report under this folder")
+    ap.add_argument("--min-effect", type=float, default=Options().min_effect_share,
+                    help="relevance bound as a share of the largest peak (diagnose's --min-effect)")
     args = ap.parse_args()
     names = [c.strip() for c in args.cases.split(",") if c.strip()]
     bad = [n for n in names if n not in CASES]
@@ -285,7 +289,7 @@ def main() -> int:
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         model = baseline(seed)
         for name in names:
-            r = run_case(name, seed, model, report=report)
+            r = run_case(name, seed, model, report=report, options=Options(min_effect_share=args.min_effect))
             rows.append(r)
             acc = ", ".join(r.accepted) or "nothing"
             if r.artefacts:
