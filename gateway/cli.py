@@ -23,6 +23,7 @@ COMMAND_MODULES = (
     "gateway.commands.estimate",
     "gateway.commands.model",
     "simulators.cli",
+    "gateway.commands.demo",
 )
 
 

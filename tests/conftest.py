@@ -7,10 +7,7 @@ import time
 from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parent.parent
-PROFILES = ROOT / "profiles"
-SHARED_DATA = ROOT.parent / "shared" / "data"
+from tests_paths import SHARED_DATA
 
 
 @pytest.fixture(autouse=True)
