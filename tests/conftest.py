@@ -7,7 +7,9 @@ import time
 from pathlib import Path
 
 import pytest
-from tests_paths import SHARED_DATA
+from tests_paths import PROFILES, ROOT, SHARED_DATA
+
+__all__ = ["PROFILES", "ROOT", "SHARED_DATA"]
 
 
 @pytest.fixture(autouse=True)
