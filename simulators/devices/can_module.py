@@ -339,12 +339,12 @@ class CanModule:
         if command == "":
             return ok
         if head in ("O", "L"):
-            if self._pty is not None:
-                self._pty.flush_to_client()  # frames left over from an earlier session
             self._slcan_open = True
             return ok
         if head == "C":
             self._slcan_open = False
+            if self._pty is not None:
+                self._pty.flush_to_client()  # the next session must not start with this one's frames
             return ok
         if head == "S" and command[1:] in [str(i) for i in range(10)]:
             return error if self._slcan_open else ok
