@@ -133,8 +133,8 @@ class ModbusDevice:
             try:
                 await server.serve_forever(background=True)
             except (RuntimeError, OSError) as exc:
-                raise SimulationError(f"{self.name}: cannot listen on {self.transport.host}:{self.transport.port}"
-                                      f": {exc}") from None
+                raise SimulationError(f"{self.name}: cannot listen on {self.transport.host}:{self.transport.port} "
+                                      f"(is the port in use?): {exc}") from None
             sock = server.transport.sockets[0]  # type: ignore[union-attr]
             self._bound = (self.transport.host, int(sock.getsockname()[1]))
         else:
