@@ -294,9 +294,13 @@ def test_tcp_disconnect_is_seen_and_the_client_reconnects(devices, source, clock
     try:
         check_default_map(client, source, clock)
         devices.adc_tcp.disconnect_clients()
-        with pytest.raises(ConnectionException):
+        # the closed connection shows as end-of-stream, or as a reset when the request crossed the close:
+        # pymodbus wraps the first and lets the second through, so a driver must handle both
+        with pytest.raises((ConnectionException, ConnectionResetError)):
             client.read_input_registers(0, count=9, device_id=1)
-        check_default_map(client, source, clock)  # the sync client reconnects on the next call
+        # after a reset the sync client keeps its dead socket: close it, as a driver should on any error
+        client.close()
+        check_default_map(client, source, clock)  # reconnects on the next call
     finally:
         client.close()
 
