@@ -199,7 +199,8 @@ class CanModule:
         self._commands = bytearray()
         self._task: asyncio.Task[None] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        #: frames put on the bus(es), periods skipped because the loop was late, frames nobody took
+        #: frames built and handed to the transports, periods skipped because the loop was late, frames a
+        #: full receiver (virtual queue or pseudo-terminal buffer) could not take
         self.frames_sent = 0
         self.missed_periods = 0
         self.overflows = 0

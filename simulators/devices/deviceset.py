@@ -16,6 +16,7 @@ import logging
 import shutil
 import tempfile
 import threading
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -87,6 +88,8 @@ class DeviceSet:
         config = config or DeviceSetConfig()
         self.config = config
         self.link_dir = Path(tempfile.mkdtemp(prefix="cncgw-sim-"))
+        # a set that is dropped without stop() must not leave its directory behind
+        self._cleanup = weakref.finalize(self, shutil.rmtree, self.link_dir, ignore_errors=True)
         self._loop = DeviceLoop()
         self._lock = threading.Lock()
         self._state = "new"
@@ -108,7 +111,7 @@ class DeviceSet:
                 **common, config=config.cnc, name="cnc",
                 transport=TcpTransport(host=config.host, port=config.cnc_port))
         except BaseException:
-            shutil.rmtree(self.link_dir, ignore_errors=True)
+            self._cleanup()
             raise
         self._started: list[Device] = []
 
@@ -147,7 +150,7 @@ class DeviceSet:
             except Exception:  # stop the others regardless
                 log.exception("%s: cannot stop cleanly", device.name)
         self._loop.stop()
-        shutil.rmtree(self.link_dir, ignore_errors=True)
+        self._cleanup()
 
     def __enter__(self) -> DeviceSet:
         return self.start() if self._state == "new" else self

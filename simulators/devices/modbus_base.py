@@ -117,9 +117,9 @@ class ModbusDevice:
         """Where clients find the device, for people: ``modbus-tcp://127.0.0.1:5020`` or ``modbus-rtu:...``."""
         if self._bound is not None:
             return f"modbus-tcp://{self._bound[0]}:{self._bound[1]} (unit id any)"
-        if self._client_pty is not None:
+        if self._client_pty is not None and isinstance(self.transport, RtuTransport):
             return (f"modbus-rtu:{self._client_pty.path} (device id {self.device_id}, "
-                    f"{self.transport.baudrate} baud 8N1)")  # type: ignore[union-attr]
+                    f"{self.transport.baudrate} baud 8N1)")
         return "not running"
 
     # -- lifecycle --------------------------------------------------------------------------------------
