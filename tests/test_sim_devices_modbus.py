@@ -278,6 +278,19 @@ def test_tcp_corrupt_and_garbage_replies_are_refused(devices, source, clock):
         client.close()
 
 
+def test_rtu_dropped_request_times_out_then_recovers(devices, source, clock):
+    client = rtu_client(devices.adc_rtu, timeout_s=0.3)
+    try:
+        devices.adc_rtu.faults.drop_replies = True
+        with pytest.raises(ModbusIOException):
+            client.read_input_registers(0, count=4, device_id=1)
+        assert devices.adc_rtu.faults.counts["dropped"] == 1
+        devices.adc_rtu.faults.drop_replies = False
+        check_default_map(client, source, clock)
+    finally:
+        client.close()
+
+
 def test_rtu_garbage_reply_is_refused(devices):
     client = rtu_client(devices.adc_rtu, timeout_s=0.3)
     try:
