@@ -125,7 +125,7 @@ class DeviceLoop:
 
 @dataclass(frozen=True, kw_only=True)
 class LineTime:
-    """Time on a serial line: ``bits_per_char`` (start + 8 data + parity + stop) bits per byte."""
+    """Time on a serial line: ``bits_per_char`` bits per byte (10 for 8N1: start, 8 data, stop)."""
 
     baudrate: int
     bits_per_char: int = 10
