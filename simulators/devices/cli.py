@@ -1,9 +1,103 @@
-"""``cncgw simulate`` actions of the simulated devices."""
+"""``cncgw simulate serve SCENARIO``: the simulated machine behind its devices, until Ctrl-C.
+
+The devices are served on loopback (see :mod:`simulators.devices.deviceset`); the addresses are printed
+on start. The machine comes from the machine package (:func:`machine_source`); until that package
+offers a live source, the action fails with a clear :class:`~gateway.errors.SimulationError`.
+"""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import math
+import signal
+import sys
+import threading
+from pathlib import Path
+from typing import TYPE_CHECKING, TextIO
+
+from gateway.clock import Clock, ScaledClock
+from gateway.errors import SimulationError
+from simulators.live import LiveSource
+
+if TYPE_CHECKING:
+    from simulators.devices.deviceset import DeviceSetConfig
+
+#: what the machine package must offer: ``open_live_source(scenario: Path, *, clock: Clock) -> LiveSource``
+MACHINE_ENTRY = "open_live_source"
 
 
 def add_actions(actions: argparse._SubParsersAction) -> None:
     """Add this part's actions to ``cncgw simulate``."""
+    p = actions.add_parser(
+        "serve", help="serve the simulated machine's devices on loopback until Ctrl-C",
+        description="Run the simulated machine through SCENARIO and serve its devices on 127.0.0.1: an "
+                    "ADC board over Modbus TCP and RTU, a CAN module (slcan), DCON modules, and the CNC's "
+                    "compensation registers over Modbus TCP. Their addresses are printed on start.")
+    p.add_argument("scenario", metavar="SCENARIO", help="scenario TOML file the machine runs")
+    p.add_argument("--speedup", type=float, default=1.0, metavar="N",
+                   help="simulated seconds per wall second (default 1)")
+    p.add_argument("--adc-port", type=int, default=0, metavar="PORT",
+                   help="TCP port of the Modbus ADC board (default: any free port)")
+    p.add_argument("--cnc-port", type=int, default=0, metavar="PORT",
+                   help="TCP port of the CNC's compensation registers (default: any free port)")
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="stop after S wall seconds (default: run until Ctrl-C)")
+    p.set_defaults(func=run_serve)
+
+
+def run_serve(args: argparse.Namespace) -> int:
+    """Serve the devices of the machine running ``args.scenario``."""
+    if not (args.speedup > 0 and math.isfinite(args.speedup)):
+        raise SimulationError(f"--speedup must be a finite number > 0. Got {args.speedup!r}")
+    for flag, port in (("--adc-port", args.adc_port), ("--cnc-port", args.cnc_port)):
+        if not 0 <= port <= 65535:
+            raise SimulationError(f"{flag} must be in 0..65535. Got {port!r}")
+    from simulators.devices.deviceset import DeviceSetConfig  # here: keeps `cncgw --help` light
+
+    clock = ScaledClock(args.speedup)
+    source = machine_source(Path(args.scenario), clock)
+    config = DeviceSetConfig(adc_tcp_port=args.adc_port, cnc_port=args.cnc_port)
+    return serve_until_stopped(source, clock, config, duration_s=args.duration)
+
+
+def machine_source(scenario: Path, clock: Clock) -> LiveSource:
+    """The simulated machine running ``scenario``, from ``simulators.machine.open_live_source``."""
+    import simulators.machine as machine
+
+    entry = getattr(machine, MACHINE_ENTRY, None)
+    if entry is None:
+        raise SimulationError(
+            f"the simulated machine is not available yet: simulators.machine has no {MACHINE_ENTRY}(), "
+            f"so there is nothing to run {scenario} on. The devices themselves work: see "
+            "simulators.devices.serve() to put them in front of any LiveSource.")
+    source = entry(scenario, clock=clock)
+    if not isinstance(source, LiveSource):
+        raise SimulationError(f"simulators.machine.{MACHINE_ENTRY}() returned {type(source).__name__}, "
+                              "not a LiveSource")
+    return source
+
+
+def serve_until_stopped(source: LiveSource, clock: Clock, config: DeviceSetConfig | None = None, *,
+                        duration_s: float | None = None, stop: threading.Event | None = None,
+                        out: TextIO | None = None) -> int:
+    """Serve until ``stop`` is set, ``duration_s`` wall seconds pass, Ctrl-C or SIGTERM; returns 0."""
+    from simulators.devices.deviceset import serve
+
+    out = out or sys.stdout
+    stop = stop or threading.Event()
+    restore = None
+    if threading.current_thread() is threading.main_thread():
+        # a service manager stops us with SIGTERM: shut the devices down as cleanly as on Ctrl-C
+        restore = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        with serve(source, clock, config) as devices:
+            print(devices.describe(), file=out, flush=True)
+            print(f"serving at {clock.speedup:g}x; Ctrl-C stops", file=out, flush=True)
+            with contextlib.suppress(KeyboardInterrupt):
+                stop.wait(duration_s)
+    finally:
+        if restore is not None:
+            signal.signal(signal.SIGTERM, restore)
+    print("devices stopped", file=out, flush=True)
+    return 0
