@@ -91,13 +91,20 @@ def test_serve_until_stopped_prints_the_addresses(capsys):
     assert "devices stopped" in out
 
 
-def test_cli_serve_without_the_machine_fails_clearly(capsys, tmp_path):
+def test_cli_serve_with_a_bad_scenario_fails_clearly(capsys, tmp_path):
     scenario = tmp_path / "scenario.toml"
-    scenario.write_text("")
+    scenario.write_text("[scenario]\nname = 'x'\nseed = -1\n")
     assert cli.main(["simulate", "serve", str(scenario), "--speedup", "60"]) == SimulationError.exit_code
     err = capsys.readouterr().err
-    assert "the simulated machine is not available yet" in err
+    assert f"{scenario}:" in err
     assert "Traceback" not in err
+
+
+def test_cli_serves_the_simulated_machine(capsys):
+    assert cli.main(["simulate", "serve", "spindle-1000rpm", "--speedup", "600", "--duration", "0.3"]) == 0
+    out = capsys.readouterr().out
+    assert "modbus-tcp://127.0.0.1:" in out
+    assert "devices stopped" in out
 
 
 def test_cli_serve_checks_its_arguments(capsys):

@@ -1,8 +1,8 @@
 """``cncgw simulate serve SCENARIO``: the simulated machine behind its devices, until Ctrl-C.
 
 The devices are served on loopback (see :mod:`simulators.devices.deviceset`); the addresses are printed
-on start. The machine comes from the machine package (:func:`machine_source`); until that package
-offers a live source, the action fails with a clear :class:`~gateway.errors.SimulationError`.
+on start. The machine is :class:`simulators.machine.LiveMachine` running the scenario (a bundled name or a
+TOML path) on a clock sped up ``--speedup`` times.
 """
 
 from __future__ import annotations
@@ -23,10 +23,6 @@ from simulators.live import LiveSource
 if TYPE_CHECKING:
     from simulators.devices.deviceset import DeviceSetConfig
 
-#: what the machine package must offer: ``open_live_source(scenario: Path, *, clock: Clock) -> LiveSource``
-MACHINE_ENTRY = "open_live_source"
-
-
 def add_actions(actions: argparse._SubParsersAction) -> None:
     """Add this part's actions to ``cncgw simulate``."""
     p = actions.add_parser(
@@ -34,7 +30,7 @@ def add_actions(actions: argparse._SubParsersAction) -> None:
         description="Run the simulated machine through SCENARIO and serve its devices on 127.0.0.1: an "
                     "ADC board over Modbus TCP and RTU, a CAN module (slcan), DCON modules, and the CNC's "
                     "compensation registers over Modbus TCP. Their addresses are printed on start.")
-    p.add_argument("scenario", metavar="SCENARIO", help="scenario TOML file the machine runs")
+    p.add_argument("scenario", metavar="SCENARIO", help="scenario the machine runs: a bundled name or a TOML file")
     p.add_argument("--speedup", type=float, default=1.0, metavar="N",
                    help="simulated seconds per wall second (default 1)")
     p.add_argument("--adc-port", type=int, default=0, metavar="PORT",
@@ -56,26 +52,16 @@ def run_serve(args: argparse.Namespace) -> int:
     from simulators.devices.deviceset import DeviceSetConfig  # here: keeps `cncgw --help` light
 
     clock = ScaledClock(args.speedup)
-    source = machine_source(Path(args.scenario), clock)
+    source = machine_source(args.scenario, clock)
     config = DeviceSetConfig(adc_tcp_port=args.adc_port, cnc_port=args.cnc_port)
     return serve_until_stopped(source, clock, config, duration_s=args.duration)
 
 
-def machine_source(scenario: Path, clock: Clock) -> LiveSource:
-    """The simulated machine running ``scenario``, from ``simulators.machine.open_live_source``."""
-    import simulators.machine as machine
+def machine_source(scenario: str | Path, clock: Clock) -> LiveSource:
+    """The simulated machine running ``scenario`` (bundled name or TOML path) against ``clock``."""
+    from simulators.machine import LiveMachine
 
-    entry = getattr(machine, MACHINE_ENTRY, None)
-    if entry is None:
-        raise SimulationError(
-            f"the simulated machine is not available yet: simulators.machine has no {MACHINE_ENTRY}(), "
-            f"so there is nothing to run {scenario} on. The devices themselves work: see "
-            "simulators.devices.serve() to put them in front of any LiveSource.")
-    source = entry(scenario, clock=clock)
-    if not isinstance(source, LiveSource):
-        raise SimulationError(f"simulators.machine.{MACHINE_ENTRY}() returned {type(source).__name__}, "
-                              "not a LiveSource")
-    return source
+    return LiveMachine(scenario, clock=clock)
 
 
 def serve_until_stopped(source: LiveSource, clock: Clock, config: DeviceSetConfig | None = None, *,
