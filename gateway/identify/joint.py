@@ -80,6 +80,15 @@ class AxisFit:
         return out
 
 
+def _split(v: np.ndarray, sizes: Sequence[int]) -> list[np.ndarray]:
+    """Cut a flat parameter vector into consecutive pieces of the given sizes."""
+    out, k = [], 0
+    for n in sizes:
+        out.append(v[k: k + n])
+        k += n
+    return out
+
+
 class AxisProblem:
     """The variable-projection problem of one axis.
 
@@ -145,11 +154,7 @@ class AxisProblem:
             x0 = np.clip(x0, np.array(lo) + 1e-6, np.array(hi) - 1e-6)
 
         def split(x: np.ndarray) -> list[np.ndarray]:
-            out, k = [], 0
-            for n in sizes:
-                out.append(x[k: k + n])
-                k += n
-            return out
+            return _split(x, sizes)
 
         cache: dict[str, object] = {}
 
@@ -171,10 +176,7 @@ class AxisProblem:
 
         def jacobian(x: np.ndarray) -> np.ndarray:
             thetas, per_path, coef, _, Q = evaluate(x)
-            gains, k = [], 0
-            for cols in per_path:
-                gains.append(coef[k: k + len(cols)])
-                k += len(cols)
+            gains = _split(coef, [len(cols) for cols in per_path])
             V = np.empty((self.n, x.size))
             for q, j in enumerate(owner):
                 local = q - sum(sizes[:j])
@@ -193,10 +195,9 @@ class AxisProblem:
                                                x_scale=1.0, max_nfev=max_nfev, xtol=1e-7, ftol=1e-6, gtol=1e-8)
             x, nfev, converged = sol.x, sol.nfev, sol.status > 0
         thetas, per_path, coef, r, _ = evaluate(x)
-        gains, k = [], 0
-        for cols in per_path:
-            gains.append(coef[k: k + len(cols)])
-            k += len(cols)
+        sizes_lin = [len(cols) for cols in per_path]
+        gains = _split(coef, sizes_lin)
+        k = sum(sizes_lin)
         fit = AxisFit(axis=self.es.axes[self.i], structures=structures, thetas=[t.copy() for t in thetas],
                       gains=gains, offsets=coef[k:], rss=float(r @ r), n=self.n, nfev=nfev, converged=converged)
         fit.residuals = self._per_experiment(r)
@@ -253,11 +254,7 @@ class AxisProblem:
         lin = np.concatenate([*fit.gains, fit.offsets])
 
         def split(v: np.ndarray) -> list[np.ndarray]:
-            out, k = [], 0
-            for n in sizes:
-                out.append(v[k: k + n])
-                k += n
-            return out
+            return _split(v, sizes)
 
         base = self.columns(structures, fit.thetas)
         out0 = base @ lin
