@@ -111,10 +111,19 @@ class AxisProblem:
         self.offset_cols = (exp_idx[:, None] == np.arange(es.n_exp)[None, :]).astype(float)
         self.bounds = Bounds.for_data(es.dt_s, es.longest_s)
         self.evaluations = 0
+        self._moving = [np.flatnonzero(np.any(es.du[j] != 0.0, axis=1)) for j in range(len(es.factors))]
 
     # -- the design matrix and the projected residual --------------------------------------------------
     def path_columns(self, j: int, structure: str, theta: Sequence[float]) -> list[np.ndarray]:
-        return [resp[self.valid] for resp in unit_responses(structure, theta, self.es.du[j], self.es.dt_s)]
+        # a factor moves in a few experiments only; its response is exactly zero in the others (inputs are
+        # deviations from rest), so only those are filtered
+        rows = self._moving[j]
+        out = []
+        for resp in unit_responses(structure, theta, self.es.du[j][rows], self.es.dt_s):
+            full = np.zeros(self.valid.shape)
+            full[rows] = resp
+            out.append(full[self.valid])
+        return out
 
     def columns(self, structures: Sequence[str], thetas: Sequence[Sequence[float]]) -> np.ndarray:
         cols = [c for j, s in enumerate(structures) if s != "zero" for c in self.path_columns(j, s, thetas[j])]
