@@ -19,7 +19,8 @@ IDENTIFICATION = ("spindle-1000rpm", "spindle-500rpm", "spindle-400-600rpm", "fe
 def identified():
     profile = load_profile(PROFILES / "sim-vmc.toml")
     train = [simulate(load_scenario(n)).recording() for n in IDENTIFICATION]
-    return profile, identify(train, factors=profile.factor_names, axes=profile.axes)
+    return profile, identify(train, factors=profile.factor_names, axes=profile.axes,
+                             units={f.name: f.unit for f in profile.factors})
 
 
 @pytest.mark.parametrize("run", ["random-spindle", "spindle-feeds"])
@@ -54,3 +55,13 @@ def test_identification_reports_structure_and_reference_state(identified):
     assert result.model.reference["z_i_sq"] > 5.0
     assert result.model.reference["spindle_speed"] == 0.0
     assert all(s.chosen.rms < 0.3 for s in result.selections)
+
+
+def test_estimate_warns_where_the_model_extrapolates(identified):
+    """The production day runs the spindle at up to 3000 rpm; identification went to 1000 rpm."""
+    _, result = identified
+    day = estimate(result.model, simulate(load_scenario("production-day")).recording())
+    assert ("factor spindle_speed reaches 3000 rpm above its reference, 3.0x the largest in the identification "
+            "experiments (1000 rpm): the model extrapolates there") in day.notes
+    paper_kind = estimate(result.model, simulate(load_scenario("spindle-feeds")).recording())
+    assert not [n for n in paper_kind.notes if "extrapolates" in n]
