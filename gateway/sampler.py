@@ -322,6 +322,7 @@ class Acquisition:
     Start consumers first, then producers (Telegraf's agent): :meth:`start` starts the closer, then the
     samplers; :meth:`stop` stops the samplers, then the closer (windows that ended are recorded, the
     current one is not). Use it as a context manager.
+
     """
 
     def __init__(self, profile: Profile, *, clock: Clock, sinks: Sequence[Sink] = (), spin_s: float = 0.0,

@@ -116,8 +116,12 @@ class DeviceWindow:
 
     @property
     def span_s(self) -> float:
-        """Clock time of this window the device was sampling for."""
-        return max(0.0, self.end_s - self.opened_s)
+        """The window's clock time.
+
+        Coverage and expected ticks count against the whole window, so a window the gateway joined late
+        (its first) is not passed off as a full one.
+        """
+        return self.end_s - self.start_s
 
     @property
     def ticks_expected(self) -> int:
