@@ -81,7 +81,7 @@ class DconDriver(Driver):
         port = table.str("port", expected='a serial device path such as "/dev/ttyUSB0"')
         baudrate = table.int("baudrate", default=9600, expected="one of " + ", ".join(map(str, BAUDRATES)))
         if baudrate is not None and baudrate not in BAUDRATES:
-            table.problem("baudrate", f"expected one of {', '.join(map(str, BAUDRATES))}, got {baudrate}")
+            table.problem("baudrate", f"expected one of {', '.join(map(str, BAUDRATES))}, got {baudrate} (an integer)")
             baudrate = None
         use_checksum = table.bool("checksum", default=False)
         inputs = table.int("inputs", default=8, min=1, max=16)

@@ -67,7 +67,7 @@ def parse_register_address(table: Any) -> RegisterAddress | None:
                                                               "the wire)")
     function = table.int("function", default=4, expected="4 (input registers) or 3 (holding registers)")
     if function is not None and function not in FUNCTIONS:
-        table.problem("function", f"expected 4 (input registers) or 3 (holding registers), got {function}")
+        table.problem("function", f"expected 4 (input registers) or 3 (holding registers), got {function} (an integer)")
         function = None
     data_type = table.str("data_type", default="int16", choices=DATA_TYPES)
     word_order = table.str("word_order", default="big", choices=ORDERS)

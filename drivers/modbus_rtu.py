@@ -55,7 +55,8 @@ class ModbusRtuDriver(ModbusDriver):
         baudrate = table.int("baudrate", default=19200,
                              expected="one of " + ", ".join(str(b) for b in BAUDRATES))
         if baudrate is not None and baudrate not in BAUDRATES:
-            table.problem("baudrate", f"expected one of {', '.join(str(b) for b in BAUDRATES)}, got {baudrate}")
+            rates = ", ".join(str(b) for b in BAUDRATES)
+            table.problem("baudrate", f"expected one of {rates}, got {baudrate} (an integer)")
             baudrate = None
         parity = table.str("parity", default="N", choices=("N", "E", "O"))
         stopbits = table.int("stopbits", default=1, min=1, max=2)

@@ -277,7 +277,10 @@ def _parse_acquisition(root: Table, factors: list[Factor],
     from gateway.errors import did_you_mean
 
     devices: list[Device] = []
+    drivers: dict[str, str] = {}  # every device whose driver is known, parsed or not: its channels are checked
+    device_tables: list[str] = []
     for dname, t in root.tables("devices", name_pattern=NAME):
+        device_tables.append(dname)
         known = registry.names()
         driver = t.str("driver", choices=known,
                        expected=None if known else "the name of an installed driver (none is installed)")
@@ -285,6 +288,7 @@ def _parse_acquisition(root: Table, factors: list[Factor],
             continue
         options = registry.parse_device_options(driver, t)
         t.done()
+        drivers[dname] = driver
         if options is None:
             continue
         period = getattr(options, "period_s", None) or sampling.fast_period_s
@@ -296,14 +300,15 @@ def _parse_acquisition(root: Table, factors: list[Factor],
 
     channels: list[Channel] = []
     for cname, t in root.tables("channels", name_pattern=NAME):
-        dev = t.str("device", choices=list(by_name) or None,
-                    expected="the name of a [devices.NAME] table" if not by_name else "a string")
+        dev = t.str("device", choices=device_tables or None,
+                    expected=f"the name of a [devices.NAME] table ({', '.join(device_tables)})" if device_tables
+                    else "the name of a [devices.NAME] table (there are none)")
         unit = t.str("unit", default="")
-        if dev is None or dev not in by_name:
-            continue
-        address = registry.parse_channel_address(by_name[dev].driver, t)
+        if dev is None or dev not in drivers:
+            continue  # the device's own problem is reported with the device
+        address = registry.parse_channel_address(drivers[dev], t)
         t.done()
-        if address is None:
+        if address is None or dev not in by_name:
             continue
         channels.append(Channel(name=cname, device=dev, unit=unit or "", address=address))
 
@@ -338,9 +343,10 @@ def _check_link_budgets(root: Table, devices: list[Device], channels: list[Chann
         if budget is None or budget.min_period_s <= d.period_s:
             continue
         own = getattr(d.options, "period_s", None) is not None
-        path = ("devices", d.name, "period_s") if own else ("sampling", "fast_period_s")
-        root.doc.problem(path, f"device {d.name}: a period of {d.period_s * 1000:g} ms is faster than its link can "
-                               f"go: {budget.detail}, so it sustains at most {budget.max_rate_hz:.0f} Hz: set "
+        path = ("devices", d.name, "period_s") if own else ("devices", d.name)
+        whose = "" if own else " (sampling.fast_period_s)"
+        root.doc.problem(path, f"a period of {d.period_s * 1000:g} ms{whose} is faster than the link can go: "
+                               f"{budget.detail}, so it sustains at most {budget.max_rate_hz:.0f} Hz: set "
                                f"devices.{d.name}.period_s >= {_round_up(budget.min_period_s)}")
 
 
