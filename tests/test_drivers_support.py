@@ -112,3 +112,13 @@ class RunoutSource:
 
     def set_compensation(self, offsets_um: Mapping[str, float]) -> None:
         self.inner.set_compensation(offsets_um)
+
+
+def make_driver(profile: Profile, device: str, clock, channels: Sequence[str] | None = None):
+    """The registry's driver for ``device`` of ``profile`` (all its channels, or those named)."""
+    from drivers import registry
+
+    d = profile.device(device)
+    chans = [c for c in profile.channels_of(device) if channels is None or c.name in channels]
+    return registry.load(d.driver)(name=d.name, options=d.options, channels=[(c.name, c.address) for c in chans],
+                                   clock=clock)
