@@ -50,7 +50,7 @@ def test_dcon_driver_reads_every_input_in_engineering_units(line, tmp_path):
 
 
 def test_a_corrupted_answer_makes_its_modules_values_bad(line, tmp_path):
-    _, clock, devices, checksum = line
+    _, clock, devices, _checksum = line
     profile = live_profile(devices, tmp_path, via="dcon")
     with make_driver(profile, "dcon", clock) as driver:
         devices.dcon.faults.corrupt_replies = True  # checksum modules: wrong checksum; plain: a digit -> "?"

@@ -122,3 +122,27 @@ def make_driver(profile: Profile, device: str, clock, channels: Sequence[str] | 
     chans = [c for c in profile.channels_of(device) if channels is None or c.name in channels]
     return registry.load(d.driver)(name=d.name, options=d.options, channels=[(c.name, c.address) for c in chans],
                                    clock=clock)
+
+
+def combined_profile(devices, tmp_path: Path, parts: Mapping[str, Sequence[str]], *,
+                     sampling: Mapping[str, object] | None = None, name: str = "combined.toml") -> Profile:
+    """The bundled profile with the channels split between several simulated devices.
+
+    ``parts`` maps a ``via`` (see :data:`simulators.devices.profile_out.VIAS`) to the channels read through it.
+    """
+    from simulators.devices.profile_out import acquisition_toml
+
+    text = profile_for(devices, "adc-tcp")
+    text = text[:text.index("# generated from the running simulated devices")]
+    for via, wanted in parts.items():
+        blocks = acquisition_toml(devices, via).strip().split("\n\n")
+        text += "\n\n" + blocks[0]
+        for block in blocks[1:]:
+            if block.split("\n")[0][len("[channels."):-1] in wanted:
+                text += "\n\n" + block
+    text += "\n"
+    for key, value in (sampling or {}).items():
+        text = _set_key(text, "[sampling]", key, value)
+    path = tmp_path / name
+    path.write_text(text)
+    return load_profile(path)
