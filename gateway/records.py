@@ -210,6 +210,10 @@ QUALITY_COLUMNS = ("q_good", "q_coverage", "q_samples_expected", "q_samples_take
 
 def export_recording(store: RecordStore, profile: Profile, out: str | Path) -> Path:
     """Write the store's windows as a recording CSV for ``profile`` (see the module docstring)."""
+    window_s = float(store.meta.get("window_s", "nan"))
+    if profile.recording.period_s != window_s:
+        raise RecordingError(f"{profile.path}: recording.period_s ({profile.recording.period_s:g} s) differs from the "
+                             f"recorded window ({window_s:g} s): set recording.period_s = {window_s:g}")
     records = list(store.windows())
     if not records:
         raise RecordingError(f"{store.path}: no windows recorded yet: nothing to export")

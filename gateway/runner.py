@@ -66,11 +66,14 @@ class DeviceRunner:
         driver_factory: makes a fresh driver (default: the registry's class for ``device.driver``);
             a new one is made after every failure, so no state of a broken connection survives.
         seed: for the back-off jitter.
+        monotonic: the time base of the back-off (wall time by default; the clock's time when a test
+            steps a manual clock, whose ticks run faster than the wall).
 
     """
 
     def __init__(self, *, device: Device, channels: Sequence[Channel], clock: Clock,
-                 driver_factory: Callable[[], Driver] | None = None, seed: int | None = None) -> None:
+                 driver_factory: Callable[[], Driver] | None = None, seed: int | None = None,
+                 monotonic: Callable[[], float] = time.monotonic) -> None:
         if not channels:
             raise ValueError(f"device {device.name!r} has no channels to read")
         self.device = device
@@ -81,14 +84,15 @@ class DeviceRunner:
         self.total = RunnerCounters()  # since start, for status and benchmarks
         self.driver: Driver | None = None
         self._failures = 0  # in a row
-        self._retry_at = 0.0  # monotonic
+        self._retry_at = 0.0
         self._random = random.Random(seed)
+        self._monotonic = monotonic
         self.state = "new"  # new, on_scan, off_scan, closed
 
     # -- the sampler's calls --------------------------------------------------------------------------------
     def poll(self) -> Reading | None:
         """Read the device once, or ``None`` when it is off-scan or the read failed (counted either way)."""
-        if self.state == "off_scan" and time.monotonic() < self._retry_at:
+        if self.state == "off_scan" and self._monotonic() < self._retry_at:
             self.counters.off_scan_ticks += 1
             self.total.off_scan_ticks += 1
             return None
@@ -159,7 +163,7 @@ class DeviceRunner:
         opt = self.options
         n = max(0, self._failures - 2)
         backoff = min(opt.backoff_s * 2.0**min(n, 30), opt.backoff_max_s) * self._random.uniform(0.8, 1.2)
-        self._retry_at = time.monotonic() + backoff
+        self._retry_at = self._monotonic() + backoff
         if self.state != "off_scan":
             log.error("%s: %s; off-scan, retrying in %.1f s", self.device.name, message, backoff)
         else:

@@ -344,7 +344,8 @@ class Acquisition:
             channels = profile.channels_of(d.name)
             if not channels:
                 continue
-            runner = DeviceRunner(device=d, channels=channels, clock=clock, driver_factory=factories.get(d.name))
+            runner = DeviceRunner(device=d, channels=channels, clock=clock, driver_factory=factories.get(d.name),
+                                  monotonic=clock.now if self.stepped else time.monotonic)
             self.samplers.append(DeviceSampler(
                 runner=runner, clock=clock, period_s=d.period_s, window_s=s.window_s, sink=self.closer.put,
                 burst_channels=bursts if s.displacement_channels else (), burst_s=s.burst_s, spin_s=spin_s,
