@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import queue
 import threading
 import time
@@ -54,13 +55,16 @@ class DeviceSampler:
         sink: receives each finished window's partial (called on this sampler's thread: keep it cheap).
         burst_channels: channels whose samples in the last ``burst_s`` of each window are kept.
         spin_s: busy-wait this long before each deadline (0: sleep only).
+        rt_priority: run the thread under SCHED_FIFO at this priority (1-99; 0: the normal scheduler). On a
+            machine shared with CPU-bound work this keeps ticks on time; it needs CAP_SYS_NICE (a warning is
+            logged and the normal scheduler kept when it is refused).
         stepped: ticks are driven by :meth:`tick` from outside (no thread).
 
     """
 
     def __init__(self, *, runner: DeviceRunner, clock: Clock, period_s: float, window_s: float,
                  sink: Callable[[DevicePartial], None], burst_channels: Sequence[str] = (), burst_s: float = 0.0,
-                 spin_s: float = 0.0, stepped: bool = False) -> None:
+                 spin_s: float = 0.0, rt_priority: int = 0, stepped: bool = False) -> None:
         if not period_s > 0:
             raise ValueError(f"period_s must be > 0. Got {period_s!r}")
         self.runner = runner
@@ -73,6 +77,7 @@ class DeviceSampler:
         self._burst_channels = tuple(burst_channels)
         self._burst_s = burst_s
         self.spin_s = spin_s
+        self.rt_priority = rt_priority
         self._window: DeviceWindow | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -154,6 +159,12 @@ class DeviceSampler:
         spin = self.spin_s
         stop = self._stop
         hist = self.lateness_hist
+        if self.rt_priority:
+            try:  # Linux: pid 0 is the calling thread
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.rt_priority))
+            except (OSError, AttributeError) as exc:
+                log.warning("%s: cannot use real-time priority %d (%s); sampling under the normal scheduler",
+                            self.name, self.rt_priority, exc)
         self.started_wall = deadline = time.monotonic()
         try:
             while not stop.is_set():
@@ -316,6 +327,7 @@ class Acquisition:
         clock: the shared clock.
         sinks: called with each :class:`WindowRecord`, in window order, on the closer's thread.
         spin_s: busy-wait before each deadline (see :class:`DeviceSampler`).
+        rt_priority: SCHED_FIFO priority of the sampler threads (0: normal; see :class:`DeviceSampler`).
         driver_factories: device name -> function making its driver (default: the registry's); for a
             driver that needs something the profile cannot say, e.g. a live bus object.
 
@@ -326,7 +338,7 @@ class Acquisition:
     """
 
     def __init__(self, profile: Profile, *, clock: Clock, sinks: Sequence[Sink] = (), spin_s: float = 0.0,
-                 driver_factories: dict[str, Callable[[], Driver]] | None = None) -> None:
+                 rt_priority: int = 0, driver_factories: dict[str, Callable[[], Driver]] | None = None) -> None:
         if not profile.devices or not profile.channels:
             raise ValueError(f"profile {profile.path} has no devices and channels to sample")
         self.profile = profile
@@ -349,7 +361,7 @@ class Acquisition:
             self.samplers.append(DeviceSampler(
                 runner=runner, clock=clock, period_s=d.period_s, window_s=s.window_s, sink=self.closer.put,
                 burst_channels=bursts if s.displacement_channels else (), burst_s=s.burst_s, spin_s=spin_s,
-                stepped=self.stepped))
+                rt_priority=rt_priority, stepped=self.stepped))
         self._state = "new"
 
     @staticmethod
