@@ -88,6 +88,7 @@ class DeviceSampler:
         self.lateness_max_s = 0.0
         self.started_wall: float | None = None
         self.stopped_wall: float | None = None
+        self.cpu_s = 0.0  # CPU time of the sampler thread, known once it stopped
 
     # -- one tick ---------------------------------------------------------------------------------------------
     def tick(self, skipped: int = 0, lateness_s: float = 0.0) -> None:
@@ -196,6 +197,7 @@ class DeviceSampler:
                 deadline += period
         finally:
             self.stopped_wall = time.monotonic()
+            self.cpu_s = time.thread_time()
             try:
                 self.hand_in_finished(self.clock.now())
             finally:
