@@ -210,6 +210,8 @@ def main() -> int:
             print(f"threads in this process while sampling: sampler, window closer, main "
                   f"(+ store and estimator on the closer); active now: {threading.active_count()}")
             run_sampler(profile_path, args.seconds, args.spin_us, model, tmp)
+            if not args.skip_naive:
+                run_naive(profile_path, args.seconds)
             if args.rt_priority:
                 # the simulated board stands in for a board with a CPU of its own: on a machine shared with
                 # CPU-bound work it gets real-time priority too, one below the sampler's
@@ -217,8 +219,6 @@ def main() -> int:
                 print("\n(the simulator process's threads now run under SCHED_FIFO "
                       f"{max(1, args.rt_priority - 1)} too)")
                 run_sampler(profile_path, args.seconds, args.spin_us, model, tmp, args.rt_priority)
-            if not args.skip_naive:
-                run_naive(profile_path, args.seconds)
         finally:
             server.terminate()
             server.wait(timeout=10)
