@@ -233,14 +233,6 @@ def _describe(exc: BaseException) -> str:
 
 
 # -- helpers several drivers share ----------------------------------------------------------------------
-def check_bits(value: int, bits: int, signed: bool) -> int:
-    """Interpret the low ``bits`` of ``value`` as a two's complement integer when ``signed``."""
-    value &= (1 << bits) - 1
-    if signed and value >> (bits - 1):
-        value -= 1 << bits
-    return value
-
-
 _STRUCT = {"int16": ">h", "uint16": ">H", "int32": ">i", "uint32": ">I", "float32": ">f"}
 
 
