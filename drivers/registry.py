@@ -8,7 +8,8 @@ A driver class provides two class methods the profile loader calls while checkin
 ``parse_device_options(table)`` for the keys of a ``[devices.NAME]`` table (besides ``driver``), and
 ``parse_channel_address(table)`` for the keys of a ``[channels.NAME]`` table on such a device (besides
 ``device`` and ``unit``). Both read with the typed getters of :class:`gateway.tomlcheck.Table`, so a bad key
-is reported with the others.
+is reported with the others. ``link_budget(options, addresses)`` may say how fast the link can go (see
+:class:`drivers.base.Driver`). Built-in drivers: ``modbus_tcp``, ``modbus_rtu``, ``can``, ``dcon``.
 """
 
 from __future__ import annotations
