@@ -383,9 +383,14 @@ def format_summary(profile: Profile) -> str:
     if profile.devices:
         lines.append(f"devices   {len(profile.devices)}: " +
                      ", ".join(f"{d.name} ({d.driver})" for d in profile.devices))
+        from drivers import registry
+
         for d in profile.devices:
-            names = [c.name for c in profile.channels_of(d.name)]
-            lines.append(f"  {d.name}: {d.driver}, every {d.period_s * 1000:g} ms, {len(names)} channel"
+            chans = profile.channels_of(d.name)
+            names = [c.name for c in chans]
+            budget = registry.link_budget(d.driver, d.options, [c.address for c in chans]) if chans else None
+            need = f" (the link needs {budget.min_period_s * 1000:.3g} ms a scan)" if budget else ""
+            lines.append(f"  {d.name}: {d.driver}, every {d.period_s * 1000:g} ms{need}, {len(names)} channel"
                          f"{'s' if len(names) != 1 else ''}" + (f": {', '.join(names)}" if names else ""))
         lines.append(f"channels  {len(profile.channels)}: " + ", ".join(c.name for c in profile.channels))
         disp = profile.sampling.displacement_channels
