@@ -22,6 +22,7 @@ COMMAND_MODULES = (
     "gateway.commands.identify",
     "gateway.commands.estimate",
     "gateway.commands.model",
+    "gateway.commands.record",
     "simulators.cli",
     "gateway.commands.demo",
 )

@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import math
 import signal
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
@@ -21,7 +23,7 @@ from gateway.errors import SimulationError
 from simulators.live import LiveSource
 
 if TYPE_CHECKING:
-    from simulators.devices.deviceset import DeviceSetConfig
+    from simulators.devices.deviceset import DeviceSet, DeviceSetConfig
 
 def add_actions(actions: argparse._SubParsersAction) -> None:
     """Add this part's actions to ``cncgw simulate``."""
@@ -39,6 +41,14 @@ def add_actions(actions: argparse._SubParsersAction) -> None:
                    help="TCP port of the CNC's compensation registers (default: any free port)")
     p.add_argument("--duration", type=float, default=None, metavar="S",
                    help="stop after S wall seconds (default: run until Ctrl-C)")
+    p.add_argument("--profile-out", metavar="FILE",
+                   help="write the bundled profile with the live address of the device --via to FILE once serving "
+                        "(ports are chosen at start and pseudo-terminal paths are temporary)")
+    p.add_argument("--via", choices=("adc-tcp", "adc-rtu", "can-slcan", "dcon"), default="adc-tcp",
+                   help="the device the --profile-out profile reads the channels from (default adc-tcp)")
+    p.add_argument("--displacement", action="store_true",
+                   help="also serve the displacement sensors x_um, y_um, z_um on the ADC board (float32 um at input "
+                        "registers 120-125) and read them as bursts in the --profile-out profile")
     p.set_defaults(func=run_serve)
 
 
@@ -54,7 +64,23 @@ def run_serve(args: argparse.Namespace) -> int:
     clock = ScaledClock(args.speedup)
     source = machine_source(args.scenario, clock)
     config = DeviceSetConfig(adc_tcp_port=args.adc_port, cnc_port=args.cnc_port)
-    return serve_until_stopped(source, clock, config, duration_s=args.duration)
+    on_start = None
+    if args.displacement and not args.via.startswith("adc"):
+        raise SimulationError(f"--displacement: the displacement sensors are on the ADC board, not --via {args.via}")
+    if args.displacement:
+        from simulators.devices.profile_out import adc_with_displacement
+
+        config = dataclasses.replace(config, adc=adc_with_displacement(config.adc))
+    if args.profile_out:
+        from simulators.devices.profile_out import profile_for
+
+        def on_start(devices: DeviceSet) -> None:
+            path = Path(args.profile_out)
+            tmp = path.with_name(path.name + ".tmp")
+            tmp.write_text(profile_for(devices, args.via, displacement=args.displacement), encoding="utf-8")
+            tmp.replace(path)  # a reader polling for the file never sees half of it
+
+    return serve_until_stopped(source, clock, config, duration_s=args.duration, on_start=on_start)
 
 
 def machine_source(scenario: str | Path, clock: Clock) -> LiveSource:
@@ -66,8 +92,11 @@ def machine_source(scenario: str | Path, clock: Clock) -> LiveSource:
 
 def serve_until_stopped(source: LiveSource, clock: Clock, config: DeviceSetConfig | None = None, *,
                         duration_s: float | None = None, stop: threading.Event | None = None,
-                        out: TextIO | None = None) -> int:
-    """Serve until ``stop`` is set, ``duration_s`` wall seconds pass, Ctrl-C or SIGTERM; returns 0."""
+                        out: TextIO | None = None, on_start: Callable[[DeviceSet], None] | None = None) -> int:
+    """Serve until ``stop`` is set, ``duration_s`` wall seconds pass, Ctrl-C or SIGTERM; returns 0.
+
+    ``on_start`` is called with the running devices before their addresses are printed.
+    """
     from simulators.devices.deviceset import serve
 
     out = out or sys.stdout
@@ -78,6 +107,8 @@ def serve_until_stopped(source: LiveSource, clock: Clock, config: DeviceSetConfi
         restore = signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
         with serve(source, clock, config) as devices:
+            if on_start is not None:
+                on_start(devices)
             print(devices.describe(), file=out, flush=True)
             print(f"serving at {clock.speedup:g}x; Ctrl-C stops", file=out, flush=True)
             with contextlib.suppress(KeyboardInterrupt):
