@@ -238,13 +238,19 @@ class CompensationWriter:
         self.alarms.clear("operator_hold", now)
         self._fault_since_s = None
         self.alarms.clear("inputs", now, f"inputs good again at window {update.index}")
-        target = {a.axis: a.sign * estimate[a.axis] for a in self.settings.axes}
+        aim = estimate
+        if self.settings.aim == "midpoint":
+            ahead = {a: float(update.next_um.get(a, math.nan)) for a in self.axes}
+            if all(math.isfinite(v) for v in ahead.values()):
+                aim = {a: 0.5 * (estimate[a] + ahead[a]) for a in self.axes}
+        target = {a.axis: a.sign * aim[a.axis] for a in self.settings.axes}
         self._move(now, update.index, estimate, target, received_wall)
 
     def _check_stale(self, now: float) -> None:
         since = self._last_update_s if self._last_update_s is not None else self._started_s
         if since is not None and now - since > self.stale_after_s:
-            self._fault(now, f"holding the offsets: no estimate for {now - since:.0f} s (stale inputs)", None, None)
+            self._fault(now, f"holding the offsets: no estimate since t = {since:.0f} s (stale inputs, more than "
+                             f"{self.stale_after_s:g} s)", None, None)
 
     def _fault(self, now: float, message: str, update: EstimateUpdate | None,
                estimate: dict[str, float] | None) -> None:

@@ -163,7 +163,10 @@ class Alarms:
             else:
                 self._active[name] = Alarm(name=name, message=message, since_s=t_s)
                 self.raised_total += 1
-        log.warning("ALARM %s: %s", name, message)
+        if a is None:
+            log.warning("ALARM %s: %s", name, message)
+        else:
+            log.info("alarm %s still active: %s", name, message)
         if self._audit is not None:
             self._audit.event(t_s, "alarm", name, message)
         if self._on_change is not None:

@@ -23,6 +23,7 @@ Only history that can still matter is read on start: twenty times the model's sl
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 from collections.abc import Iterable, Mapping
@@ -67,6 +68,7 @@ class EstimateUpdate:
     index: int
     end_s: float
     estimate_um: Mapping[str, float]
+    next_um: Mapping[str, float]  # predicted for the end of the next window, the factors held
     factors: Mapping[str, float]
     usable: bool
     reason: str = ""
@@ -203,12 +205,19 @@ class Estimator:
         assert last is not None
         y = self.estimator.output()
         self.last = EstimateUpdate(index=last.index, end_s=last.end_s, estimate_um=self._axes_map(y),
+                                   next_um=self._predict(du[:, -1]),
                                    factors=MappingProxyType(dict(last.factors)), usable=False,
                                    reason="rebuilt from the records: no live window yet")
         return du.shape[1]
 
     def _axes_map(self, y: np.ndarray) -> Mapping[str, float]:
         return MappingProxyType({a: float(v) for a, v in zip(self.model.axes, y, strict=True)})
+
+    def _predict(self, du: np.ndarray) -> Mapping[str, float]:
+        """The estimate one window ahead if the factors stay at ``du`` (the state is not touched)."""
+        # the discretised model is shared, only the state is copied
+        ahead = copy.deepcopy(self.estimator, memo={id(self.dm): self.dm})
+        return self._axes_map(ahead.step(du))
 
     def update(self, record: WindowRecord) -> EstimateUpdate:
         """Step through ``record`` (and any windows missing before it); return the new estimate."""
@@ -221,6 +230,7 @@ class Estimator:
             gap = self.history.gaps[-1]
             log.warning("%s", gap.describe(self.window_s))
         upd = EstimateUpdate(index=record.index, end_s=record.end_s, estimate_um=self._axes_map(y),
+                             next_um=self._predict(cols[:, -1]),
                              factors=MappingProxyType(dict(record.factors)), usable=not reason, reason=reason,
                              filled=filled, first_live=self.live_windows == 0, notes=record.notes)
         self.live_windows += 1

@@ -24,6 +24,7 @@ from gateway.tomlcheck import Table
 
 GAP_POLICIES = ("hold", "reference")
 ON_FAULT = ("hold", "ramp_to_zero")
+AIMS = ("midpoint", "estimate")
 DATA_TYPES = ("int32", "int16")
 ORDERS = ("big", "little")
 SECURITY_POLICIES = ("None", "Basic256Sha256_Sign", "Basic256Sha256_SignAndEncrypt",
@@ -93,6 +94,10 @@ class Compensation:
     change per update (one update a window; also the ramp rate on a fault), ``deadband_um`` skips changes
     smaller than that. ``on_fault``: with stale or bad inputs the offset is held at once; ``"ramp_to_zero"``
     ramps it to zero (``max_step_um`` a window) once the fault has lasted ``fault_hold_s``.
+    ``aim``: an offset written at a window's end is in force during the next window, while the machine
+    keeps moving: ``"midpoint"`` aims at the middle of that window (the mean of the estimate and its
+    prediction one window ahead with the factors held), which halves the lag error; ``"estimate"`` writes
+    the estimate as it is.
     ``heartbeat_period_s`` and ``watchdog_s`` are clock seconds (a sped-up simulator's clock too).
     """
 
@@ -114,6 +119,7 @@ class Compensation:
     deadband_um: float = 0.1
     on_fault: str = "hold"
     fault_hold_s: float = 600.0
+    aim: str = "midpoint"
 
     def axis(self, name: str) -> AxisOutput:
         for a in self.axes:
@@ -183,6 +189,7 @@ def parse_compensation(root: Table, axes: tuple[str, ...], window_s: float) -> C
         "deadband_um": t.float("deadband_um", default=0.1, min=0.0),
         "on_fault": t.str("on_fault", default="hold", choices=ON_FAULT),
         "fault_hold_s": t.float("fault_hold_s", default=600.0, min=0.0),
+        "aim": t.str("aim", default="midpoint", choices=AIMS),
     }
     outputs = []
     for name, at in t.tables("axes"):
