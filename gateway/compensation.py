@@ -89,7 +89,7 @@ class CompensationWriter:
         self._beat = 0
         self._next_beat_s = -math.inf
         self._next_connect_wall = 0.0
-        self._started_s: float | None = None
+        self._inputs_from_s: float | None = None  # set by expect_inputs(): no staleness before inputs are due
         self._last_update_s: float | None = None
         self._fault_since_s: float | None = None
         self._last_ramp_s: float | None = None
@@ -105,6 +105,10 @@ class CompensationWriter:
     @property
     def writing(self) -> bool:
         return self.settings.enabled
+
+    def expect_inputs(self, from_s: float | None = None) -> None:
+        """Inputs are due from now on (the acquisition started): staleness counts from here."""
+        self._inputs_from_s = self.clock.now() if from_s is None else from_s
 
     def request_hold(self, on: bool) -> None:
         """An operator's hold: while on, updates do not move the offsets (the heartbeat goes on)."""
@@ -160,8 +164,6 @@ class CompensationWriter:
     def service(self) -> None:
         """Connect if needed, beat if due, act on a new update or a fault ramp (one call does it all)."""
         now = self.clock.now()
-        if self._started_s is None:
-            self._started_s = now
         if self.writing and not self.synced:
             self._sync(now)
         if self.writing and self.synced and now >= self._next_beat_s:
@@ -247,7 +249,7 @@ class CompensationWriter:
         self._move(now, update.index, estimate, target, received_wall)
 
     def _check_stale(self, now: float) -> None:
-        since = self._last_update_s if self._last_update_s is not None else self._started_s
+        since = self._last_update_s if self._last_update_s is not None else self._inputs_from_s
         if since is not None and now - since > self.stale_after_s:
             self._fault(now, f"holding the offsets: no estimate since t = {since:.0f} s (stale inputs, more than "
                              f"{self.stale_after_s:g} s)", None, None)

@@ -137,6 +137,10 @@ class OpcUaServer:
         s = self.settings
         policies = [getattr(ua.SecurityPolicyType, "NoSecurity" if p == "None" else p) for p in s.security]
         server.set_security_policy(policies)
+        # anonymous reading; user certificates only where a signing policy can verify them
+        tokens = [ua.AnonymousIdentityToken] + ([ua.X509IdentityToken] if len(policies) > 1 or
+                                                policies[0] != ua.SecurityPolicyType.NoSecurity else [])
+        server.set_identity_tokens(tokens)
         if s.certificate is not None and s.private_key is not None:
             await server.load_certificate(str(s.certificate))
             await server.load_private_key(str(s.private_key))

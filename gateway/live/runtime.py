@@ -146,6 +146,7 @@ class LiveGateway:
                                        rt_priority=self._rt_priority, driver_factories=self._driver_factories)
         if not self.stepped:
             self.acquisition.start()
+        self.writer.expect_inputs()
         log.info("gateway %s running: %d device(s), compensation %s%s", p.name, len(self.acquisition.samplers),
                  "WRITING to " + f"{p.compensation.host}:{p.compensation.port}" if p.compensation.enabled else
                  "dry run", f", OPC UA at {self.opcua.endpoint}" if self.opcua is not None else "")
