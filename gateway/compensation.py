@@ -42,7 +42,7 @@ from typing import Any
 from gateway.clock import Clock
 from gateway.errors import CompensationError, DriverError
 from gateway.live.audit import Alarms, AuditLog, WriteEntry
-from gateway.live.cnc import CncLink, CncState
+from gateway.live.cnc import CncLink, CncRejected, CncState
 from gateway.live.estimator import EstimateUpdate
 from gateway.live.settings import Compensation
 
@@ -127,6 +127,8 @@ class CompensationWriter:
     def start(self) -> CompensationWriter:
         if self._thread is not None:
             raise RuntimeError("the compensation writer is already running")
+        if not math.isfinite(self.clock.speedup):
+            raise RuntimeError("a ManualClock has no wall time to beat on: call service() as the clock moves")
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="cncgw-compensation", daemon=True)
         self._thread.start()
@@ -199,6 +201,7 @@ class CompensationWriter:
         self.synced = True
         self._next_beat_s = now + self.settings.heartbeat_period_s
         self.alarms.clear("cnc", now, "CNC reachable; offsets taken over as applied: " + _fmt(state.applied_um))
+        self.alarms.clear("verify", now, "re-synchronised with the CNC")
         if self.audit is not None:
             self.audit.event(now, "sync", "cnc", f"synchronised: applied {_fmt(state.applied_um)}, status "
                                                  f"{state.status}")
@@ -214,15 +217,25 @@ class CompensationWriter:
         self.alarms.raise_("cnc", message, now)
 
     def _heartbeat(self, now: float) -> None:
+        """Beat, then check the CNC still applies what was commanded (a trip or a reset shows here)."""
         assert self._link is not None
         self._beat += 1
         try:
             self._link.beat(self._beat)
+            state = self._link.state()
         except (DriverError, CompensationError) as exc:
             self._link_failed(now, f"heartbeat failed: {exc}")
             return
         self.beats += 1
+        self.cnc_state = state
         self._next_beat_s = now + self.settings.heartbeat_period_s
+        expected = {a.axis: round(self.commanded_um[a.axis] / a.unit_um) for a in self.settings.axes}
+        if state.active is False or state.applied_counts != expected:
+            self.alarms.raise_("verify", f"the CNC applies {_fmt(state.applied_um)} (status {state.status}, "
+                                         f"{'tripped' if state.tripped else 'active' if state.active else 'inactive'}"
+                                         f"), not the {_fmt(self.commanded_um)} commanded: re-synchronising", now)
+            self.commanded_um = dict(state.applied_um)
+            self.synced = False
 
     # -- deciding what to write ---------------------------------------------------------------------------
     def _on_update(self, update: EstimateUpdate, now: float, received_wall: float | None) -> None:
@@ -318,6 +331,11 @@ class CompensationWriter:
         try:
             self._link.write_offsets(counts)
             state = self._link.state()
+        except CncRejected as exc:  # the CNC said no: nothing of the request applies; the link is fine
+            self.failures += 1
+            self.alarms.raise_("cnc", f"write of {_fmt(commanded)} refused: {exc}", now)
+            self._refresh_after_failure(now)
+            return
         except (DriverError, CompensationError) as exc:
             self._link_failed(now, f"write of {_fmt(commanded)} failed: {exc}")
             self._refresh_after_failure(now)
@@ -338,12 +356,16 @@ class CompensationWriter:
 
     def _refresh_after_failure(self, now: float) -> None:
         """After a failed write: learn what the CNC applies, if it answers at all."""
+        link = self._link
         try:
-            link = self._link_factory()
-            try:
+            if link is not None:
                 state = link.state()
-            finally:
-                link.close()
+            else:
+                link = self._link_factory()
+                try:
+                    state = link.state()
+                finally:
+                    link.close()
         except (DriverError, CompensationError):
             return
         self.cnc_state = state
