@@ -7,6 +7,7 @@ clock, so every expectation is exact and no test waits for wall time.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import time
 from types import MappingProxyType
@@ -88,11 +89,15 @@ def test_writes_sign_times_estimate_reads_back_and_the_machine_gets_it(cnc, sour
         assert w.synced
         assert w.commanded_um == pytest.approx({"x": 0.5, "y": -0.3, "z": 1.3})  # sign -1, 0.1 um counts
         status = cnc.update()
-        assert status.enabled and not status.tripped and status.heartbeat_ok
+        assert status.enabled
+        assert not status.tripped
+        assert status.heartbeat_ok
         assert status.applied_um == pytest.approx({"x": 0.5, "y": -0.3, "z": 1.3})
         assert source.last_compensation() == pytest.approx({"x": 0.5, "y": -0.3, "z": 1.3})
         (entry,) = list(audit.writes())
-        assert entry.mode == "write" and entry.verified and entry.window == 0
+        assert entry.mode == "write"
+        assert entry.verified
+        assert entry.window == 0
         assert dict(entry.commanded_um) == pytest.approx(dict(entry.applied_um))
         assert dict(entry.estimate_um) == {"x": -0.5, "y": 0.3, "z": -1.26}
         assert w.beats >= 59  # one a second of clock time
@@ -147,10 +152,11 @@ def test_stale_inputs_ramp_to_zero_when_configured(cnc, clock, audit):
         for _ in range(600):  # ten minutes without an estimate
             clock.advance(1.0)
             w.service()
-        assert "inputs" in w.alarms and "ramp" in w.alarms
+        assert "inputs" in w.alarms
+        assert "ramp" in w.alarms
         zs = [e.commanded_um["z"] for e in audit.writes()]
         assert zs == pytest.approx([1.0, 2.0, 3.0, 2.0, 1.0, 0.0])  # held 150 + 120 s, then 1 um a window
-        assert all(abs(b - a) <= 1.0 + 1e-9 for a, b in zip(zs, zs[1:], strict=False))
+        assert all(abs(b - a) <= 1.0 + 1e-9 for a, b in itertools.pairwise(zs))
         assert cnc.update().applied_um["z"] == 0.0
         assert cnc.update().enabled  # the heartbeat went on all along: the CNC never tripped
     finally:
@@ -163,7 +169,8 @@ def test_cnc_unreachable_raises_an_alarm_writes_nothing_and_resynchronises(cnc, 
         feed(w, clock, update(0, z=-1.0))
         cnc.faults.drop_replies = True  # the CNC stops answering: requests time out
         feed(w, clock, update(1, z=-2.0), dt=3.0)
-        assert "cnc" in w.alarms and not w.synced
+        assert "cnc" in w.alarms
+        assert not w.synced
         assert len(list(audit.writes())) == 1
         cnc.faults.drop_replies = False
         for _ in range(200):  # reconnect attempts are spaced by reconnect_s of wall time
@@ -171,14 +178,17 @@ def test_cnc_unreachable_raises_an_alarm_writes_nothing_and_resynchronises(cnc, 
                 break
             time.sleep(0.01)
             w.service()
-        assert w.synced and "cnc" not in w.alarms
+        assert w.synced
+        assert "cnc" not in w.alarms
         feed(w, clock, update(2, z=-3.0), dt=1.0)
         feed(w, clock, update(3, z=-3.0))
         zs = [e.commanded_um["z"] for e in audit.writes()]
         assert zs == pytest.approx([1.0, 3.0])  # from what the CNC applied (1.0), one step of 2 um
         assert all(e.verified for e in audit.writes())
         kinds = [k for _, k, n, _ in audit.events() if n == "cnc"]
-        assert kinds[0] == "sync" and "alarm" in kinds and kinds[-2:] == ["clear", "sync"]
+        assert kinds[0] == "sync"
+        assert "alarm" in kinds
+        assert kinds[-2:] == ["clear", "sync"]
     finally:
         w.stop()
 
@@ -206,18 +216,23 @@ def test_after_a_watchdog_trip_the_writer_resumes_from_the_ramped_offsets(cnc, c
         assert cnc.update().applied_um["z"] == pytest.approx(6.0)
         clock.advance(10.0)  # the gateway stalls: no beat for 10 s, the CNC trips at 5 s and ramps (10 s)
         status = cnc.update()
-        assert status.tripped and status.applied_um["z"] == pytest.approx(3.0)
+        assert status.tripped
+        assert status.applied_um["z"] == pytest.approx(3.0)
         w.service()  # the next beat finds the CNC tripped
-        assert "verify" in w.alarms and not w.synced
+        assert "verify" in w.alarms
+        assert not w.synced
         assert "tripped" in next(a.message for a in w.alarms.active() if a.name == "verify")
         w.service()  # re-synchronises: commands what the CNC applies, then enables it
         status = cnc.update()
-        assert w.synced and status.enabled and not status.tripped
+        assert w.synced
+        assert status.enabled
+        assert not status.tripped
         assert status.applied_um["z"] == pytest.approx(3.0)  # taken over from the ramp, no jump back to 6
         feed(w, clock, update(4, z=-6.0), update(5, z=-6.0))
         zs = [e.applied_um["z"] for e in audit.writes()]
-        assert all(abs(b - a) <= 2.0 + 1e-9 for a, b in zip(zs, zs[1:], strict=False))
-        assert cnc.update().applied_um["z"] == pytest.approx(6.0) and not cnc.update().tripped
+        assert all(abs(b - a) <= 2.0 + 1e-9 for a, b in itertools.pairwise(zs))
+        assert cnc.update().applied_um["z"] == pytest.approx(6.0)
+        assert not cnc.update().tripped
     finally:
         w.stop()
 
@@ -228,8 +243,11 @@ def test_dry_run_computes_and_audits_but_never_connects(cnc, clock, audit):
         feed(w, clock, update(0, z=-1.0), update(1, z=-1.0))
         assert [(e.mode, e.commanded_um["z"]) for e in audit.writes()] == [("dry-run", 1.0)]
         status = cnc.update()
-        assert not status.enabled and status.applied_um["z"] == 0.0 and status.command_um["z"] == 0.0
-        assert w.beats == 0 and not w.synced
+        assert not status.enabled
+        assert status.applied_um["z"] == 0.0
+        assert status.command_um["z"] == 0.0
+        assert w.beats == 0
+        assert not w.synced
     finally:
         w.stop()
 
@@ -249,7 +267,9 @@ def test_writer_thread_keeps_the_watchdog_alive_on_a_sped_up_clock(source):
         while clock.now() - start < 60.0:  # a minute of clock time
             clock.sleep_until(clock.now() + 5.0)
         status = devices.cnc.update()
-        assert status.enabled and status.heartbeat_ok and status.trips == 0
+        assert status.enabled
+        assert status.heartbeat_ok
+        assert status.trips == 0
         assert status.applied_um["z"] == pytest.approx(1.0)
         assert w.beats >= 10
     finally:
