@@ -77,22 +77,32 @@ class EstimateUpdate:
     notes: tuple[str, ...] = ()
 
 
-def bad_reason(record: WindowRecord, factors: Iterable[str]) -> str:
-    """Why a record cannot drive the estimate (``""`` when it can)."""
+def bad_reason(record: WindowRecord, factors: Iterable[str], channels: Mapping[str, str] | None = None) -> str:
+    """Why a record cannot drive the estimate (``""`` when it can).
+
+    ``channels``: factor -> its channel; a factor channel with saturated samples makes the window bad (the
+    converter sat at its limit: the true value, and so the factor, is beyond what was read).
+    """
     if record.status != "good":
         errs = f"; devices in error: {', '.join(record.devices_in_error)}" if record.devices_in_error else ""
         return f"window {record.index} {record.status}{errs}"
     missing = [f for f in factors if not math.isfinite(record.factors.get(f, math.nan))]
     if missing:
         return f"window {record.index}: no finite value for {', '.join(missing)}"
+    for f, ch in (channels or {}).items():
+        stats = record.channels.get(ch)
+        if stats is not None and stats.saturated:
+            return f"window {record.index}: channel {ch} ({f}) saturated in {stats.saturated} samples"
     return ""
 
 
 class FactorHistory:
     """Turns window records into the estimator's input columns (deviations from the reference), gaps filled."""
 
-    def __init__(self, model: ThermalModel, window_s: float, live: Live) -> None:
+    def __init__(self, model: ThermalModel, window_s: float, live: Live,
+                 channels: Mapping[str, str] | None = None) -> None:
         self.model = model
+        self.channels = dict(channels or {})
         self.window_s = float(window_s)
         self.live = live
         self.reference = model.reference_vector()
@@ -135,7 +145,7 @@ class FactorHistory:
                 cols.append(self._fill_column(j))
             filled += last - first + 1
             self._note_gap(first, last, "gateway down: no record")
-        reason = bad_reason(record, self.model.factors)
+        reason = bad_reason(record, self.model.factors, self.channels)
         if reason:
             cols.append(self._fill_column(record.index))
             filled += 1
@@ -154,7 +164,7 @@ def history_windows(model: ThermalModel, window_s: float, live: Live) -> int:
     """How many windows of stored history the rebuild reads (see the module docstring)."""
     if live.history_max_h is not None:
         return max(1, math.ceil(live.history_max_h * 3600.0 / window_s))
-    slowest = max((tau for p in model.paths.values() for t in p.terms for tau in t.time_constants_s()),
+    slowest = max((tau for p in model.paths.values() for t in p.terms for tau in t.time_constants_s),
                   default=window_s)
     delay = max((p.delay_s for p in model.paths.values()), default=0.0)
     return max(1, math.ceil((20.0 * slowest + delay) / window_s))
@@ -167,18 +177,20 @@ class Estimator:
         model: the identified model (inputs are deviations from ``model.reference``).
         window_s: the profile's window.
         live: the gap policy.
+        channels: factor -> channel (saturated samples on it make a window bad).
 
     :meth:`rebuild` recomputes the state from stored records before the first live window.
 
     """
 
-    def __init__(self, model: ThermalModel, *, window_s: float, live: Live) -> None:
+    def __init__(self, model: ThermalModel, *, window_s: float, live: Live,
+                 channels: Mapping[str, str] | None = None) -> None:
         self.model = model
         self.window_s = float(window_s)
         self.live = live
         self.dm = model.discretize(window_s)
         self.estimator: LiveEstimator = self.dm.live()
-        self.history = FactorHistory(model, window_s, live)
+        self.history = FactorHistory(model, window_s, live, channels)
         self.last: EstimateUpdate | None = None
         self.rebuilt_windows = 0
         self.live_windows = 0

@@ -115,7 +115,8 @@ class LiveGateway:
         mode = "writing" if p.compensation.enabled else "dry run"
         self.audit.event(now, "start", "gateway", f"{p.name}: compensation {mode}")
 
-        self.estimator = Estimator(self.model, window_s=p.sampling.window_s, live=p.live)
+        self.estimator = Estimator(self.model, window_s=p.sampling.window_s, live=p.live,
+                                   channels={f.name: f.channel for f in p.factors})
         if self.store.last_index is not None:
             since = self.store.last_index + 1 - history_windows(self.model, p.sampling.window_s, p.live)
             t0 = time.perf_counter()
