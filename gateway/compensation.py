@@ -320,6 +320,8 @@ class CompensationWriter:
                 self.alarms.raise_("refused", f"axis {a.axis}: {new[a.axis]!r} um is not a value to write", now)
                 return
             counts[a.axis] = c
+        if all(counts[a.axis] == round(self.commanded_um[a.axis] / a.unit_um) for a in s.axes):
+            return  # finer than the registers' resolution: nothing new to write
         commanded = {a.axis: counts[a.axis] * a.unit_um for a in s.axes}
         if not self.writing:
             self._record(now, window, "dry-run", estimate, target, commanded, commanded, True, None, note)

@@ -200,10 +200,10 @@ def parse_compensation(root: Table, axes: tuple[str, ...], window_s: float) -> C
         if out is not None:
             outputs.append(out)
     t.done()
-    bad = [k for k, x in v.items() if x is None and k not in ("host", "enable_coil", "heartbeat_register",
-                                                               "status_register")]
-    if bad:
-        return Compensation(axes=default_axes(axes))
+    defaults = Compensation()
+    for k, x in v.items():  # a bad value is reported already: check the rest against the default
+        if x is None and k not in ("host", "enable_coil", "heartbeat_register", "status_register"):
+            v[k] = getattr(defaults, k)
     explicit = bool(outputs)
     if not outputs:
         outputs = list(default_axes(axes))
@@ -256,9 +256,6 @@ def _check_compensation(t: Table, c: Compensation, *, explicit: bool, window_s: 
         if c.limit_um / a.unit_um > a.max_counts:
             t.doc.problem((*t.path, "axes", a.axis, "unit_um"), f"limit_um {c.limit_um:g} does not fit {a.data_type} "
                                                    f"counts of {a.unit_um:g} um")
-        if c.deadband_um and c.deadband_um < a.unit_um / 2:
-            t.doc.problem((*t.path, "axes", a.axis, "unit_um"),
-                          f"a count of {a.unit_um:g} um is coarser than twice the deadband ({c.deadband_um:g} um)")
         for r in range(a.register, a.register + a.n_registers):
             if r in used:
                 t.doc.problem((*t.path, "axes", a.axis, "register"), f"register {r} is already used by {used[r]}")
