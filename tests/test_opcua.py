@@ -11,12 +11,12 @@ import math
 import threading
 
 import pytest
+from tests_paths import PROFILES
 
 from gateway.live.settings import OpcUa
 from gateway.model import load_model
 from gateway.opcua import OpcUaServer
 from gateway.profile import load_profile
-from tests_paths import PROFILES
 
 HEALTH = {
     "factors": {"spindle_speed": 1000.0, "z_i_sq": 13.3},
