@@ -116,11 +116,14 @@ class CompensationWriter:
         self._wake.set()
 
     # -- input (any thread) -------------------------------------------------------------------------------
-    def submit(self, update: EstimateUpdate) -> None:
-        """Hand over the newest estimate (cheap; the writer's thread acts on it)."""
+    def submit(self, update: EstimateUpdate, *, since_wall: float | None = None) -> None:
+        """Hand over the newest estimate (cheap; the writer's thread acts on it).
+
+        ``since_wall``: ``time.perf_counter()`` when the window was closed, for the latency figures.
+        """
         with self._lock:
             self._pending = update
-            self._received_wall = time.perf_counter()
+            self._received_wall = time.perf_counter() if since_wall is None else since_wall
         self._wake.set()
 
     # -- the thread ---------------------------------------------------------------------------------------

@@ -194,7 +194,7 @@ class LiveGateway:
         t0 = time.perf_counter()
         update = self.estimator.update(record)
         self.update_s.append(time.perf_counter() - t0)
-        self.writer.submit(update)
+        self.writer.submit(update, since_wall=t0)
         if self.stepped:
             self.writer.service()
         with self._lock:
