@@ -128,7 +128,7 @@ def _live(args: argparse.Namespace, out: Path, model: object) -> int:
                 print(f"    OPC UA (read-only): {gw.opcua.endpoint}  e.g. ns=2;s=Estimate.z_um\n")
             print(f"    {'time':>6} {'spindle':>8} {'estimate z':>11} {'offset z':>9} {'error without':>14} "
                   f"{'error with':>11}  alarms")
-            while clock.now() < end_s:
+            while clock.now() < end_s or not rows.empty():
                 try:
                     record, update, offsets = rows.get(timeout=0.2)
                 except queue.Empty:
