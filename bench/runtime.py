@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -31,13 +30,38 @@ from gateway.clock import ScaledClock  # noqa: E402
 from gateway.live.estimator import Estimator  # noqa: E402
 from gateway.live.runtime import LiveGateway  # noqa: E402
 from gateway.live.settings import Live  # noqa: E402
-from gateway.live.simulated import compensation_toml  # noqa: E402
 from gateway.model import load_model  # noqa: E402
 from gateway.profile import load_profile  # noqa: E402
 from gateway.records import STORE_NAME, RecordStore  # noqa: E402
 from gateway.windows import WindowRecord  # noqa: E402
 
 CNCGW = str(Path(sys.executable).with_name("cncgw"))
+#: the simulated machine and devices in their own process; the CNC's watchdog is raised to 1 s of wall time
+#: (5 s of clock time would be 83 ms of wall time at 60x: a starved simulator process would trip it)
+SIM = """
+import dataclasses, sys
+from pathlib import Path
+from gateway.clock import ScaledClock
+from gateway.live.simulated import compensation_toml
+from simulators.devices import DeviceSetConfig
+from simulators.devices.cli import machine_source, serve_until_stopped
+from simulators.devices.cnc import CompensationConfig
+from simulators.devices.profile_out import profile_for
+speedup, out, duration, origin = float(sys.argv[1]), Path(sys.argv[2]), float(sys.argv[3]), float(sys.argv[4])
+watchdog = max(5.0, speedup)
+clock = ScaledClock(speedup, origin=origin)
+cnc = dataclasses.replace(CompensationConfig(), heartbeat_timeout_s=watchdog)
+def on_start(devices):
+    host, port = devices.cnc.address
+    text = profile_for(devices, "adc-tcp") + "\\n" + compensation_toml(
+        host, port, max_step_um=5.0, heartbeat_period_s=watchdog / 5, watchdog_s=watchdog)
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text(text + '\\n[opcua]\\nhost = "127.0.0.1"\\nport = 0\\n')
+    tmp.replace(out)
+serve_until_stopped(machine_source("spindle-feeds", clock), clock,
+                    DeviceSetConfig(adc_rtu=None, can=None, dcon=None, cnc=cnc), duration_s=duration,
+                    on_start=on_start)
+"""
 MODEL = ROOT / "profiles" / "sim-vmc.model.toml"
 
 
@@ -69,12 +93,6 @@ def estimator_cost(n: int) -> None:
     print(f"rebuild on start reads at most {hist} windows ({hist / 60 / 24:.1f} days: 20 x the slowest time constant)")
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def proc_stat() -> tuple[float, int]:
     """(CPU seconds of this process, resident memory in bytes)."""
     t = os.times()
@@ -88,22 +106,17 @@ def proc_stat() -> tuple[float, int]:
 
 def live_run(hours: float, speedup: float, tmp: Path) -> None:
     served = tmp / "served.toml"
-    cnc_port = free_port()
     wall = hours * 3600.0 / speedup
-    server = subprocess.Popen([CNCGW, "simulate", "serve", "spindle-feeds", "--speedup", str(speedup), "--profile-out",
-                               str(served), "--cnc-port", str(cnc_port), "--duration", str(wall + 30)],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    # from 45 min: the spindle starts at 60 min, so the hour holds heating and compensation writes
+    server = subprocess.Popen([sys.executable, "-c", SIM, str(speedup), str(served), str(wall + 30), "2700"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT)
     try:
         deadline = time.monotonic() + 30
         while not served.exists():
             if time.monotonic() > deadline or server.poll() is not None:
                 raise SystemExit("the simulated devices did not start")
             time.sleep(0.1)
-        text = served.read_text() + "\n" + compensation_toml("127.0.0.1", cnc_port, max_step_um=5.0)
-        text += '\n[opcua]\nhost = "127.0.0.1"\nport = 0\n'
-        path = tmp / "bench.toml"
-        path.write_text(text)
-        profile = load_profile(path)
+        profile = load_profile(served)
         model = load_model(MODEL)
         clock = ScaledClock(speedup)
         from threadpoolctl import threadpool_limits

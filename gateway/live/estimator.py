@@ -227,8 +227,12 @@ class Estimator:
 
     def _predict(self, du: np.ndarray) -> Mapping[str, float]:
         """The estimate one window ahead if the factors stay at ``du`` (the state is not touched)."""
-        # the discretised model is shared, only the state is copied
-        ahead = copy.deepcopy(self.estimator, memo={id(self.dm): self.dm})
+        # only the state is copied: the discretised model and its sections are shared (read-only). This
+        # knows LiveEstimator keeps its sections in ``_flat``; a ``LiveEstimator.peek(du)`` would be cleaner.
+        est = self.estimator
+        shared = getattr(est, "_flat", None)
+        memo = {id(self.dm): self.dm} | ({id(shared): shared} if shared is not None else {})
+        ahead = copy.deepcopy(est, memo=memo)
         return self._axes_map(ahead.step(du))
 
     def update(self, record: WindowRecord) -> EstimateUpdate:
