@@ -23,6 +23,7 @@ COMMAND_MODULES = (
     "gateway.commands.estimate",
     "gateway.commands.model",
     "gateway.commands.record",
+    "gateway.commands.run",
     "simulators.cli",
     "gateway.commands.demo",
 )

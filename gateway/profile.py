@@ -22,7 +22,11 @@ from types import MappingProxyType
 from typing import Any
 
 from gateway.errors import ProfileError
+from gateway.live.settings import Compensation, Live, OpcUa, parse_compensation, parse_live, parse_opcua
 from gateway.tomlcheck import NAME, Table, TomlDoc
+
+__all__ = ["Channel", "Compensation", "Device", "Factor", "Live", "OpcUa", "Profile", "RecordingLayout", "Sampling",
+           "Stat", "format_summary", "load_profile"]
 
 AXES = ("x", "y", "z")
 _UNIT = re.compile(r"[^\n]{1,32}")
@@ -104,13 +108,6 @@ class Channel:
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
-class Compensation:
-    """How estimates are written back to the CNC. Writing is off unless a profile turns it on."""
-
-    enabled: bool = False
-
-
-@dataclass(frozen=True, kw_only=True, slots=True)
 class Profile:
     """A machine, as its profile describes it."""
 
@@ -125,6 +122,8 @@ class Profile:
     devices: tuple[Device, ...] = ()
     channels: tuple[Channel, ...] = ()
     compensation: Compensation = field(default_factory=Compensation)
+    live: Live = field(default_factory=Live)
+    opcua: OpcUa = field(default_factory=OpcUa)
 
     @property
     def factor_names(self) -> tuple[str, ...]:
@@ -191,18 +190,16 @@ def load_profile(path: str | Path) -> Profile:
 
     devices, channels = _parse_acquisition(root, factors, sampling)
 
-    comp_t = root.table("compensation")
-    compensation = Compensation()
-    if comp_t is not None:
-        compensation = Compensation(enabled=comp_t.bool("enabled", default=False))
-        comp_t.done()
+    live = parse_live(root, sampling.window_s)
+    compensation = parse_compensation(root, axes, sampling.window_s)
+    opcua = parse_opcua(root, doc.path.parent)
 
     root.done()
     doc.raise_problems()
     return Profile(
         path=doc.path, name=name, description=description, axes=axes, sampling=sampling,
         factors=tuple(factors), recording=recording, model_path=model_path,
-        devices=tuple(devices), channels=tuple(channels), compensation=compensation,
+        devices=tuple(devices), channels=tuple(channels), compensation=compensation, live=live, opcua=opcua,
     )
 
 
@@ -401,5 +398,15 @@ def format_summary(profile: Profile) -> str:
                             if profile.sampling.burst_speed_channel else ""))
     else:
         lines.append("devices   none (offline profile: recordings only)")
-    lines.append(f"compensation {'ENABLED: writes to the CNC' if profile.compensation.enabled else 'off (dry run)'}")
+    lines.append(_compensation_line(profile))
     return "\n".join(lines)
+
+
+def _compensation_line(profile: Profile) -> str:
+    c = profile.compensation
+    if not c.enabled:
+        return "compensation off (dry run)"
+    axes = ", ".join(f"{a.axis} {'-' if a.sign < 0 else '+'}estimate -> holding {a.register} ({a.data_type}, "
+                     f"{a.unit_um:g} um)" for a in c.axes)
+    return (f"compensation ENABLED: writes to the CNC at {c.host}:{c.port}: {axes}; limit {c.limit_um:g} um, "
+            f"step {c.max_step_um:g} um, deadband {c.deadband_um:g} um, on fault {c.on_fault}")

@@ -1,24 +1,29 @@
-"""``cncgw demo``: the whole workflow on the bundled simulated machine, in about ten seconds.
+"""``cncgw demo``: the whole workflow on the bundled simulated machine, closed loop, in about a minute.
 
 1. Simulate the paper's nine identification experiments (12 h each) on the simulated machining center.
 2. Identify the model from those recordings (the joint method), as ``cncgw identify`` does.
-3. Play validation runs the identification never saw (the paper's spindle-and-feeds run, a 24 h
-   production day) and compare the tool-to-table thermal error without compensation with what would be
-   left if the CNC applied offsets of minus the estimate.
+3. Run it live: the simulated machine plays the paper's spindle-and-feeds validation run (8 h) on a clock
+   sped up ``--speedup`` times, behind its devices on 127.0.0.1 (the ADC board and the CNC's compensation
+   registers over Modbus TCP); the gateway samples the board every 2 ms, closes a window a simulated
+   minute, updates the estimate, writes offsets to the CNC (limits, read-back, heartbeat) and serves OPC
+   UA. A table follows the run; at the end, the max tool-to-table thermal error without and with
+   compensation per axis (the machine's ground truth, with the offsets the CNC really applied) and a plot.
 
-Today the third step runs offline on the same model and discretisation the live estimator uses; the live
-loop (drivers, 2 ms sampler, Modbus compensation writer) is the acquisition and live-gateway work.
+At a speed-up of N the CNC's watchdog (5 s) would be 5/N wall seconds: the demo gives the simulated CNC a
+watchdog of ``max(5 s, N x 0.5 s)`` of clock time and the gateway a heartbeat five times faster.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import logging
+import queue
+import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
-from gateway.estimate import estimate
+from gateway.commands._common import positive_float
 from gateway.identify import identify
 from gateway.model import save_model
 from gateway.profile import load_profile
@@ -26,20 +31,27 @@ from gateway.profile import load_profile
 PROFILE = Path(__file__).resolve().parents[2] / "profiles" / "sim-vmc.toml"
 IDENTIFICATION = ("spindle-1000rpm", "spindle-500rpm", "spindle-400-600rpm", "feed-x-fast", "feed-x-accel",
                   "feed-y-fast", "feed-y-accel", "feed-z-fast", "feed-z-accel")
-VALIDATION = ("spindle-feeds", "production-day")
+VALIDATION = "spindle-feeds"
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Add ``cncgw demo``."""
-    p = sub.add_parser("demo", help="the workflow end to end on the bundled simulated machine",
+    p = sub.add_parser("demo", help="the workflow end to end on the bundled simulated machine, closed loop",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("-o", "--out", default="demo-out", metavar="DIR",
-                   help="where the recordings, the model and the plot go (default: demo-out)")
+                   help="where the recordings, the model, the records, the audit log and the plot go "
+                        "(default: demo-out)")
+    p.add_argument("--speedup", type=positive_float, default=480.0, metavar="N",
+                   help="simulated seconds per wall second in the live run (default 480: 8 h in a minute)")
+    p.add_argument("--hours", type=positive_float, default=8.0, metavar="H",
+                   help="how much of the 8 h validation run to play (default: all of it)")
+    p.add_argument("--table-every-min", type=positive_float, default=30.0, metavar="M",
+                   help="a table row every M simulated minutes (default 30)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    """Simulate, identify, validate; print the table; write the plot."""
+    """Simulate, identify, run closed loop; print the tables; write the plot."""
     from gateway.commands._common import progress_bar
     from simulators.machine import load_scenario, simulate, write_run
 
@@ -73,45 +85,91 @@ def run(args: argparse.Namespace) -> int:
     for line in ident.report:
         if line.startswith("axis"):
             print(f"    {line.split(';')[0]}")
+    return _live(args, out, ident.model)
 
-    print("3/3 validation runs the identification never saw; error = tool-to-table thermal displacement; "
-          "with compensation the CNC applies offsets of minus the estimate\n")
-    print(f"    {'run':<16} {'axis':<4} {'max error without':>18} {'with compensation':>18} {'reduction':>10}")
-    estimates = []
-    for name in VALIDATION:
-        sim = simulate(load_scenario(name))
-        est = estimate(ident.model, sim.recording("true"))
-        estimates.append((name, sim, est))
-        for i, a in enumerate(profile.axes):
-            true = est.measured[i]
-            left = true - est.estimated[i]
-            before, after = float(np.max(np.abs(true))), float(np.max(np.abs(left)))
-            print(f"    {name:<16} {a:<4} {before:>15.2f} um {after:>15.2f} um {100 * (1 - after / before):>9.0f} %")
-    png = out / "demo.png"
-    _plot(estimates, png)
-    print(f"\nplot: {png}")
-    print("offline for now: the live loop (devices, 2 ms sampler, Modbus writer) replaces step 3 when built")
+
+def _live(args: argparse.Namespace, out: Path, model: object) -> int:
+    from gateway.clock import ScaledClock
+    from gateway.live.runtime import LiveGateway
+    from gateway.live.simulated import closed_loop_errors, live_profile, plot_closed_loop
+    from simulators.devices import DeviceSetConfig, serve
+    from simulators.devices.cnc import CompensationConfig
+    from simulators.machine import LiveMachine
+
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    speedup, end_s = args.speedup, args.hours * 3600.0
+    watchdog_s = max(5.0, 0.5 * speedup)
+    clock = ScaledClock(speedup)
+    machine = LiveMachine(VALIDATION, clock=clock)
+    config = DeviceSetConfig(adc_rtu=None, can=None, dcon=None,
+                             cnc=dataclasses.replace(CompensationConfig(), heartbeat_timeout_s=watchdog_s))
+    data = out / "live"
+    if (data / "records.sqlite").exists():  # a fresh run each time: the simulated clock starts at 0 again
+        for f in data.iterdir():
+            f.unlink()
+    rows: queue.Queue[tuple] = queue.Queue()
+    every_s = args.table_every_min * 60.0
+
+    def listen(record, update) -> None:
+        if round(record.end_s) % round(every_s) == 0:
+            rows.put((record, update, gw.writer.commanded_um if gw.writer else {}))
+
+    print(f"3/3 closed loop: the simulated machine runs '{VALIDATION}' ({args.hours:g} h) at {speedup:g}x behind "
+          f"Modbus TCP devices on 127.0.0.1; the gateway samples every 2 ms, estimates each simulated minute and "
+          f"writes offsets to the CNC (watchdog {watchdog_s:g} s of clock time)\n")
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="cncgw-demo-") as tmp, serve(machine, clock, config) as devices:
+        path = live_profile(devices, Path(tmp) / "sim-vmc-live.toml", opcua_port=0, max_step_um=5.0,
+                            heartbeat_period_s=watchdog_s / 5, watchdog_s=watchdog_s)
+        profile = load_profile(path)
+        gw = LiveGateway(profile, model=model, data_dir=data, clock=clock, listeners=[listen])  # type: ignore[arg-type]
+        with gw:
+            if gw.opcua is not None:
+                print(f"    OPC UA (read-only): {gw.opcua.endpoint}  e.g. ns=2;s=Estimate.z_um\n")
+            print(f"    {'time':>6} {'spindle':>8} {'estimate z':>11} {'offset z':>9} {'error without':>14} "
+                  f"{'error with':>11}  alarms")
+            while clock.now() < end_s or not rows.empty():
+                try:
+                    record, update, offsets = rows.get(timeout=0.2)
+                except queue.Empty:
+                    continue
+                _row(machine, record, update, offsets, gw)
+            health = gw.health()
+        wall = time.perf_counter() - t0
+        audit_ok, audit_n = _audit_matches(data, machine)
+    print(f"\n    {end_s / 3600:g} simulated hours in {wall:.0f} s; {health['windows_live']} windows, "
+          f"{health['compensation']['writes']} verified writes, {health['compensation']['beats']} heartbeats, "
+          f"{audit_n} audited writes: {'every one applied as written' if audit_ok else 'MISMATCHES (see audit)'}")
+    errs = closed_loop_errors(machine, end_s)
+    print("\n    tool-to-table thermal error over the run (machine's ground truth, offsets the CNC applied):\n")
+    print(f"    {'axis':<4} {'max error without':>18} {'with compensation':>18} {'reduction':>10}")
+    for a in machine.true_displacement_um(0.0):
+        before, after = errs.max_without_um[a], errs.max_with_um[a]
+        print(f"    {a:<4} {before:>15.2f} um {after:>15.2f} um {100 * (1 - after / before):>9.0f} %")
+    png = plot_closed_loop(errs, out / "demo.png", title=f"{VALIDATION}, closed loop at {speedup:g}x")
+    print(f"\nplot: {png}\nrecords and audit log: {data}/")
     return 0
 
 
-def _plot(estimates: list, path: Path) -> None:
-    import matplotlib
+def _row(machine, record, update, offsets, gw) -> None:
+    t = record.end_s
+    true = machine.true_displacement_um(t)["z"]
+    left = machine.residual_um(t)["z"]
+    alarms = ",".join(a.name for a in gw.alarms.active()) if gw.alarms else ""
+    rpm = record.factors.get("spindle_speed", float("nan"))
+    print(f"    {t / 3600:>5.1f}h {rpm:>5.0f}rpm {update.estimate_um['z']:>8.2f} um {offsets.get('z', 0.0):>6.2f} um "
+          f"{true:>11.2f} um {left:>8.2f} um  {alarms}", flush=True)
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    fig, grid = plt.subplots(len(estimates), 1, figsize=(10, 3.6 * len(estimates)), squeeze=False)
-    for row, (name, _, est) in zip(grid[:, 0], estimates, strict=True):
-        hours = (est.time_s - est.time_s[0]) / 3600
-        for i, a in enumerate(est.axes):
-            row.plot(hours, est.measured[i], color=f"C{i}", lw=1.2, label=f"{a} without compensation")
-            row.plot(hours, est.measured[i] - est.estimated[i], color=f"C{i}", lw=1.2, ls="--",
-                     label=f"{a} with compensation")
-        row.axhline(0, color="k", lw=0.5)
-        row.set_title(f"{name}: tool-to-table thermal error", fontsize=10)
-        row.set_ylabel("um")
-        row.set_xlabel("time (h)")
-        row.legend(fontsize=7, ncol=3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+def _audit_matches(data: Path, machine) -> tuple[bool, int]:
+    """Every audited write was verified, and the CNC's offsets log holds each value written."""
+    from gateway.live.audit import AUDIT_NAME, AuditLog
+
+    audit = AuditLog(data / AUDIT_NAME)
+    try:
+        writes = [w for w in audit.writes() if w.mode == "write"]
+    finally:
+        audit.close()
+    applied = {tuple(round(v, 6) for v in offs.values()) for _, offs in machine.compensation_log}
+    ok = all(w.verified and tuple(round(w.commanded_um[a], 6) for a in ("x", "y", "z")) in applied for w in writes)
+    return ok, len(writes)
