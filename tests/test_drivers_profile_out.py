@@ -44,3 +44,17 @@ def test_displacement_needs_the_adc_board(capsys):
     assert main(["simulate", "serve", "spindle-1000rpm", "--via", "dcon", "--displacement"]) == 7
     assert capsys.readouterr().err == ("cncgw: error: --displacement: the displacement sensors are on the ADC "
                                        "board, not --via dcon\n")
+
+
+@pytest.mark.parametrize(("extra", "enabled", "watchdog_s"), [([], False, 30.0),
+                                                             (["--compensate", "--cnc-watchdog-s", "12"], True, 12.0)])
+def test_profile_out_points_compensation_at_the_simulated_cnc(tmp_path, capsys, extra, enabled, watchdog_s):
+    out = tmp_path / "live.toml"
+    assert main(["simulate", "serve", "spindle-1000rpm", "--speedup", "60", "--duration", "0.2",
+                 "--profile-out", str(out), *extra]) == 0
+    printed = capsys.readouterr().out
+    comp = load_profile(out).compensation
+    assert comp.enabled is enabled  # a dry run unless asked
+    assert f"modbus-tcp://{comp.host}:{comp.port} " in printed  # the CNC served is the one written
+    assert comp.watchdog_s == watchdog_s  # default at 60x: half a wall second, 30 s of clock time
+    assert comp.heartbeat_period_s == pytest.approx(watchdog_s / 5)

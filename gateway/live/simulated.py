@@ -16,34 +16,19 @@ from typing import Any
 import numpy as np
 
 
-def compensation_toml(host: str, port: int, *, enabled: bool = True, limit_um: float = 200.0,
-                      max_step_um: float = 2.0, deadband_um: float = 0.1, heartbeat_period_s: float = 1.0,
-                      watchdog_s: float = 5.0, on_fault: str = "hold", fault_hold_s: float = 600.0,
-                      extra: str = "") -> str:
-    """A ``[compensation]`` section for the bundled simulated CNC at ``host:port``."""
-    axes = "\n".join(f"[compensation.axes.{a}]\nregister = {2 * i}\nreadback = {2 * i}\nsign = -1\nunit_um = 0.1\n"
-                     f'data_type = "int32"\nword_order = "big"\n' for i, a in enumerate("xyz"))
-    return (f"[compensation]\nenabled = {str(enabled).lower()}\nhost = \"{host}\"\nport = {port}\ntimeout_s = 0.5\n"
-            f"reconnect_s = 0.5\nenable_coil = 0\nheartbeat_register = 6\nstatus_register = 6\n"
-            f"heartbeat_period_s = {heartbeat_period_s!r}\nwatchdog_s = {watchdog_s!r}\nlimit_um = {limit_um!r}\n"
-            f"max_step_um = {max_step_um!r}\ndeadband_um = {deadband_um!r}\non_fault = \"{on_fault}\"\n"
-            f"fault_hold_s = {fault_hold_s!r}\n{extra}\n{axes}")
-
-
 def live_profile(devices: Any, out: str | Path, *, enabled: bool = True, period_s: float | None = None,
                  opcua_port: int | None = 0, live: str = "", **compensation: Any) -> Path:
     """Write the bundled profile reading ``devices``' ADC board over Modbus TCP and compensating on its CNC.
 
     ``period_s`` overrides the ADC's fast period; ``opcua_port`` adds an ``[opcua]`` section on 127.0.0.1
-    (``None``: none, OPC UA off); ``live`` is extra ``[live]`` keys; the rest goes to :func:`compensation_toml`.
+    (``None``: none, OPC UA off); ``live`` is extra ``[live]`` keys; the rest are ``[compensation]`` keys
+    (:func:`simulators.devices.profile_out.compensation_toml`).
     """
     from simulators.devices.profile_out import profile_for
 
-    text = profile_for(devices, "adc-tcp")
+    text = profile_for(devices, "adc-tcp", compensate=enabled, **compensation)
     if period_s is not None:
         text = re.sub(r"(\[devices\.adc\]\n)", rf"\g<1>period_s = {period_s!r}\n", text)
-    host, port = devices.cnc.address
-    text += "\n" + compensation_toml(host, port, enabled=enabled, **compensation)
     if live:
         text += f"\n[live]\n{live}\n"
     text += ("\n[opcua]\nenabled = false\n" if opcua_port is None else

@@ -46,6 +46,11 @@ def add_actions(actions: argparse._SubParsersAction) -> None:
                         "(ports are chosen at start and pseudo-terminal paths are temporary)")
     p.add_argument("--via", choices=("adc-tcp", "adc-rtu", "can-slcan", "dcon"), default="adc-tcp",
                    help="the device the --profile-out profile reads the channels from (default adc-tcp)")
+    p.add_argument("--cnc-watchdog-s", type=float, default=None, metavar="S",
+                   help="the CNC's heartbeat watchdog in clock seconds (default 5 s, raised to 0.5 s of wall time "
+                        "at high --speedup so a busy machine does not trip it)")
+    p.add_argument("--compensate", action="store_true",
+                   help="the --profile-out profile writes offsets to the simulated CNC (default: a dry run)")
     p.add_argument("--displacement", action="store_true",
                    help="also serve the displacement sensors x_um, y_um, z_um on the ADC board (float32 um at input "
                         "registers 120-125) and read them as bursts in the --profile-out profile")
@@ -63,7 +68,13 @@ def run_serve(args: argparse.Namespace) -> int:
 
     clock = ScaledClock(args.speedup)
     source = machine_source(args.scenario, clock)
-    config = DeviceSetConfig(adc_tcp_port=args.adc_port, cnc_port=args.cnc_port)
+    from simulators.devices.cnc import CompensationConfig
+
+    watchdog_s = args.cnc_watchdog_s if args.cnc_watchdog_s is not None else max(5.0, 0.5 * args.speedup)
+    if not (watchdog_s > 0 and math.isfinite(watchdog_s)):
+        raise SimulationError(f"--cnc-watchdog-s must be a finite number > 0. Got {watchdog_s!r}")
+    config = DeviceSetConfig(adc_tcp_port=args.adc_port, cnc_port=args.cnc_port,
+                             cnc=dataclasses.replace(CompensationConfig(), heartbeat_timeout_s=watchdog_s))
     on_start = None
     if args.displacement and not args.via.startswith("adc"):
         raise SimulationError(f"--displacement: the displacement sensors are on the ADC board, not --via {args.via}")
@@ -77,7 +88,8 @@ def run_serve(args: argparse.Namespace) -> int:
         def on_start(devices: DeviceSet) -> None:
             path = Path(args.profile_out)
             tmp = path.with_name(path.name + ".tmp")
-            tmp.write_text(profile_for(devices, args.via, displacement=args.displacement), encoding="utf-8")
+            tmp.write_text(profile_for(devices, args.via, displacement=args.displacement,
+                                       compensate=args.compensate), encoding="utf-8")
             tmp.replace(path)  # a reader polling for the file never sees half of it
 
     return serve_until_stopped(source, clock, config, duration_s=args.duration, on_start=on_start)

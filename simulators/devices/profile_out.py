@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from simulators.devices.analog import AdcBoardConfig, RegisterChannel
 
@@ -132,12 +132,28 @@ def acquisition_toml(devices: DeviceSet, via: str) -> str:
     return "\n\n".join(blocks) + "\n"
 
 
+def compensation_toml(host: str, port: int, *, enabled: bool = True, limit_um: float = 200.0,
+                      max_step_um: float = 2.0, deadband_um: float = 0.1, heartbeat_period_s: float = 1.0,
+                      watchdog_s: float = 5.0, on_fault: str = "hold", fault_hold_s: float = 600.0,
+                      extra: str = "") -> str:
+    """A ``[compensation]`` section for the bundled simulated CNC at ``host:port`` (its default register map)."""
+    axes = "\n".join(f"[compensation.axes.{a}]\nregister = {2 * i}\nreadback = {2 * i}\nsign = -1\nunit_um = 0.1\n"
+                     f'data_type = "int32"\nword_order = "big"\n' for i, a in enumerate("xyz"))
+    return (f"[compensation]\nenabled = {str(enabled).lower()}\nhost = \"{host}\"\nport = {port}\ntimeout_s = 0.5\n"
+            f"reconnect_s = 0.5\nenable_coil = 0\nheartbeat_register = 6\nstatus_register = 6\n"
+            f"heartbeat_period_s = {heartbeat_period_s!r}\nwatchdog_s = {watchdog_s!r}\nlimit_um = {limit_um!r}\n"
+            f"max_step_um = {max_step_um!r}\ndeadband_um = {deadband_um!r}\non_fault = \"{on_fault}\"\n"
+            f"fault_hold_s = {fault_hold_s!r}\n{extra}\n{axes}")
+
+
 def profile_for(devices: DeviceSet, via: str = "adc-tcp", *, base: Path = BUNDLED_PROFILE,
-                displacement: bool = False) -> str:
+                displacement: bool = False, compensate: bool = False, **compensation: Any) -> str:
     """The bundled profile's text with ``via``'s live device and channels in place of its own.
 
     The model file is made absolute (it stays next to the bundled profile). With ``displacement`` the
-    ADC's displacement channels are read as bursts of whole spindle revolutions.
+    ADC's displacement channels are read as bursts of whole spindle revolutions. When the set serves the
+    CNC, a ``[compensation]`` section points at it: writing only with ``compensate`` (else a dry run), the
+    heartbeat fast enough for the CNC's watchdog; ``compensation`` overrides :func:`compensation_toml`'s keys.
     """
     if displacement and not via.startswith("adc"):
         raise ValueError(f"displacement sensors are served by the ADC board only, not via {via!r}")
@@ -165,4 +181,9 @@ def profile_for(devices: DeviceSet, via: str = "adc-tcp", *, base: Path = BUNDLE
                       "burst_s = 3.0", 'burst_speed_channel = "spindle_speed"']
     out = "\n".join(lines).rstrip("\n") + "\n\n"
     out += f"# generated from the running simulated devices ({via})\n" + acquisition_toml(devices, via)
+    if devices.cnc is not None:
+        host, port = devices.cnc.address
+        watchdog_s = devices.config.cnc.heartbeat_timeout_s
+        keys = {"watchdog_s": watchdog_s, "heartbeat_period_s": watchdog_s / 5} | compensation
+        out += "\n" + compensation_toml(host, port, enabled=compensate, **keys)
     return out
