@@ -181,6 +181,12 @@ def main() -> int:
                          f"({t.max_error_pct_of_peak:4.1f} %)")
         print(f"{name:<22} {wall:>7.2f}   " + "   ".join(cells))
     print()
+    print("per held-out run, max error vs truth as % of peak (x / y / z):")
+    for name, (_, _, vs_truth) in results.items():
+        cells = [f"{Path(e.recording).stem} " + " / ".join(f"{e.metrics[a].max_error_pct_of_peak:.1f}" for a in axes)
+                 for e in vs_truth]
+        print(f"  {name:<22} " + ";  ".join(cells))
+    print()
     w = {k: v[0] for k, v in results.items()}
     err = {k: worst(v[2], axes, "max_abs_error_um") for k, v in results.items()}
     pct = {k: worst(v[2], axes, "max_error_pct_of_peak") for k, v in results.items()}

@@ -8,7 +8,8 @@ A driver class provides two class methods the profile loader calls while checkin
 ``parse_device_options(table)`` for the keys of a ``[devices.NAME]`` table (besides ``driver``), and
 ``parse_channel_address(table)`` for the keys of a ``[channels.NAME]`` table on such a device (besides
 ``device`` and ``unit``). Both read with the typed getters of :class:`gateway.tomlcheck.Table`, so a bad key
-is reported with the others.
+is reported with the others. ``link_budget(options, addresses)`` may say how fast the link can go (see
+:class:`drivers.base.Driver`). Built-in drivers: ``modbus_tcp``, ``modbus_rtu``, ``can``, ``dcon``.
 """
 
 from __future__ import annotations
@@ -23,7 +24,12 @@ from gateway.errors import DriverError, did_you_mean
 ENTRY_POINT_GROUP = "cncgw.drivers"
 
 #: name -> "module:Class". The registry key equals the module name.
-BUILTIN: dict[str, str] = {}
+BUILTIN: dict[str, str] = {
+    "modbus_tcp": "drivers.modbus_tcp:ModbusTcpDriver",
+    "modbus_rtu": "drivers.modbus_rtu:ModbusRtuDriver",
+    "can": "drivers.can:CanDriver",
+    "dcon": "drivers.dcon:DconDriver",
+}
 
 
 @cache
@@ -63,6 +69,11 @@ def parse_device_options(driver: str, table: Any) -> Any:
         table.problem("driver", str(exc))
         return None
     return cls.parse_device_options(table)
+
+
+def link_budget(driver: str, options: Any, addresses: list[Any]) -> Any:
+    """What the link of a ``driver`` device can sustain for one scan of ``addresses`` (``None``: no limit)."""
+    return load(driver).link_budget(options, addresses)
 
 
 def parse_channel_address(driver: str, table: Any) -> Any:

@@ -23,7 +23,10 @@ COMMAND_MODULES = (
     "gateway.commands.estimate",
     "gateway.commands.diagnose",
     "gateway.commands.model",
+    "gateway.commands.record",
+    "gateway.commands.run",
     "simulators.cli",
+    "gateway.commands.demo",
 )
 
 

@@ -99,7 +99,7 @@ def estimate(
                    gap_policy=gap_policy, inputs=model.inputs)
     est = model.discretize(rec.period_s).simulate(prep.du)
     measured = prep.y.copy()
-    notes = list(prep.notes)
+    notes = list(prep.notes) + extrapolation_notes(model, prep.du)
     metrics: dict[str, AxisMetrics] = {}
     for i, a in enumerate(model.axes):
         ok = np.isfinite(measured[i])
@@ -130,6 +130,33 @@ def estimate(
     return Estimate(recording=rec.source, axes=model.axes, time_s=prep.time_s, estimated=est,
                     measured=measured, present=prep.present, metrics=metrics, notes=tuple(notes),
                     settings={"initial": initial, "gap_policy": gap_policy, "align": align})
+
+
+def extrapolation_notes(model: ThermalModel, du: np.ndarray, *, margin: float = 1.2) -> list[str]:
+    """Factors driven beyond ``margin`` times the range the identification experiments covered.
+
+    The model is linear in each factor, but how co-varying factors (speed, I1^2, I2^2) share a response is
+    only pinned down over the ratios the experiments had: beyond their range the estimate extrapolates.
+    """
+    covered = model.info.get("deviation_range", {})
+    notes = []
+    for j, f in enumerate(model.factors):
+        if f not in covered or du.shape[1] == 0:
+            continue
+        lo, hi = covered[f]
+        top, bottom = float(np.max(du[j])), float(np.min(du[j]))
+        unit = f" {model.units[f]}" if model.units.get(f) else ""
+        tail = "the model extrapolates there"
+        if hi > 0 and top > margin * hi:
+            notes.append(f"factor {f} reaches {top:.4g}{unit} above its reference, {top / hi:.1f}x the largest "
+                         f"in the identification experiments ({hi:.4g}{unit}): {tail}")
+        elif hi <= 0 < top:
+            notes.append(f"factor {f} rises {top:.4g}{unit} above its reference, which no identification "
+                         f"experiment did: {tail}")
+        if lo < 0 and bottom < margin * lo:
+            notes.append(f"factor {f} falls {-bottom:.4g}{unit} below its reference, {bottom / lo:.1f}x the most "
+                         f"in the identification experiments: {tail}")
+    return notes
 
 
 def _lead_in(du: np.ndarray, share: float = 0.01) -> int:

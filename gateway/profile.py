@@ -14,6 +14,7 @@ what was expected.
 from __future__ import annotations
 
 import enum
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,7 +22,11 @@ from types import MappingProxyType
 from typing import Any
 
 from gateway.errors import ProfileError
+from gateway.live.settings import Compensation, Live, OpcUa, parse_compensation, parse_live, parse_opcua
 from gateway.tomlcheck import NAME, Table, TomlDoc
+
+__all__ = ["Channel", "Compensation", "Device", "Factor", "Live", "OpcUa", "Profile", "RecordingLayout", "Sampling",
+           "Stat", "format_summary", "load_profile"]
 
 AXES = ("x", "y", "z")
 _UNIT = re.compile(r"[^\n]{1,32}")
@@ -49,10 +54,21 @@ class Factor:
 
 @dataclass(frozen=True, kw_only=True, slots=True)
 class Sampling:
-    """Fast sampling period and averaging window."""
+    """Fast sampling period and averaging window, and how displacement is read during identification.
+
+    ``min_coverage``: the share of a window that good samples must cover for the window to count as good.
+    ``displacement_channels``: axis -> channel of a displacement sensor, read as a burst of ``burst_s``
+    at the end of every window and averaged over a whole number of spindle revolutions (speed from
+    ``burst_speed_channel``, rpm) to cancel runout; empty outside identification runs.
+    """
 
     fast_period_s: float
     window_s: float
+    min_coverage: float = 0.9
+    displacement_channels: MappingProxyType[str, str] = field(
+        default_factory=lambda: MappingProxyType({}))
+    burst_s: float = 3.0
+    burst_speed_channel: str | None = None
 
     @property
     def samples_per_window(self) -> int:
@@ -70,11 +86,15 @@ class RecordingLayout:
 
 @dataclass(frozen=True, kw_only=True, slots=True)
 class Device:
-    """A device the gateway reads (an ADC board, a CNC terminal). ``options`` are checked by its driver."""
+    """A device the gateway reads (an ADC board, a CNC terminal). ``options`` are checked by its driver.
+
+    ``period_s``: its fast period (its own ``period_s`` key, else ``sampling.fast_period_s``).
+    """
 
     name: str
     driver: str
     options: Any
+    period_s: float = 0.002
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -85,13 +105,6 @@ class Channel:
     device: str
     unit: str
     address: Any
-
-
-@dataclass(frozen=True, kw_only=True, slots=True)
-class Compensation:
-    """How estimates are written back to the CNC. Writing is off unless a profile turns it on."""
-
-    enabled: bool = False
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -109,10 +122,22 @@ class Profile:
     devices: tuple[Device, ...] = ()
     channels: tuple[Channel, ...] = ()
     compensation: Compensation = field(default_factory=Compensation)
+    live: Live = field(default_factory=Live)
+    opcua: OpcUa = field(default_factory=OpcUa)
 
     @property
     def factor_names(self) -> tuple[str, ...]:
         return tuple(f.name for f in self.factors)
+
+    def device(self, name: str) -> Device:
+        for d in self.devices:
+            if d.name == name:
+                return d
+        raise KeyError(name)
+
+    def channels_of(self, device: str) -> tuple[Channel, ...]:
+        """The channels read from ``device``, in profile order."""
+        return tuple(c for c in self.channels if c.device == device)
 
     def factor(self, name: str) -> Factor:
         for f in self.factors:
@@ -136,17 +161,8 @@ def load_profile(path: str | Path) -> Profile:
         axes = machine.str_list("axes", default=AXES, choices=AXES, min_len=1) or AXES
         machine.done()
 
-    sampling_t = root.table("sampling")
-    fast = window = None
-    if sampling_t is not None:
-        fast = sampling_t.float("fast_period_s", default=0.002, min=0.0, min_exclusive=True, max=10.0)
-        window = sampling_t.float("window_s", default=60.0, min=0.0, min_exclusive=True, max=86400.0)
-        sampling_t.done()
-    fast = fast if fast is not None else 0.002
-    window = window if window is not None else 60.0
-    if sampling_t is not None and window < fast:
-        sampling_t.problem("window_s", f"window ({window:g} s) must be at least one fast period ({fast:g} s)")
-    sampling = Sampling(fast_period_s=fast, window_s=window)
+    sampling = _parse_sampling(root, axes)
+    window = sampling.window_s
 
     factors = _parse_factors(root)
 
@@ -172,21 +188,49 @@ def load_profile(path: str | Path) -> Profile:
         model_t.done()
     model_path = (doc.path.parent / model_file) if model_file else doc.path.with_suffix(".model.toml")
 
-    devices, channels = _parse_acquisition(root, factors)
+    devices, channels = _parse_acquisition(root, factors, sampling)
 
-    comp_t = root.table("compensation")
-    compensation = Compensation()
-    if comp_t is not None:
-        compensation = Compensation(enabled=comp_t.bool("enabled", default=False))
-        comp_t.done()
+    live = parse_live(root, sampling.window_s)
+    compensation = parse_compensation(root, axes, sampling.window_s)
+    opcua = parse_opcua(root, doc.path.parent)
 
     root.done()
     doc.raise_problems()
     return Profile(
         path=doc.path, name=name, description=description, axes=axes, sampling=sampling,
         factors=tuple(factors), recording=recording, model_path=model_path,
-        devices=tuple(devices), channels=tuple(channels), compensation=compensation,
+        devices=tuple(devices), channels=tuple(channels), compensation=compensation, live=live, opcua=opcua,
     )
+
+
+def _parse_sampling(root: Table, axes: tuple[str, ...]) -> Sampling:
+    sampling_t = root.table("sampling")
+    fast = window = coverage = burst = speed_channel = None
+    disp: dict[str, str] = {}
+    if sampling_t is not None:
+        fast = sampling_t.float("fast_period_s", default=0.002, min=0.0, min_exclusive=True, max=10.0)
+        window = sampling_t.float("window_s", default=60.0, min=0.0, min_exclusive=True, max=86400.0)
+        coverage = sampling_t.float("min_coverage", default=0.9, min=0.0, max=1.0)
+        disp_t = sampling_t.table("displacement_channels")
+        if disp_t is not None:
+            for a in axes:
+                ch = disp_t.str(a, default=None, pattern=NAME, expected="a channel name")
+                if ch is not None:
+                    disp[a] = ch
+            disp_t.done()
+        burst = sampling_t.float("burst_s", default=3.0, min=0.0, min_exclusive=True)
+        speed_channel = sampling_t.str("burst_speed_channel", default=None, pattern=NAME,
+                                       expected="a channel name (spindle speed in rpm)")
+        sampling_t.done()
+    fast = fast if fast is not None else 0.002
+    window = window if window is not None else 60.0
+    if sampling_t is not None and window < fast:
+        sampling_t.problem("window_s", f"window ({window:g} s) must be at least one fast period ({fast:g} s)")
+    burst = burst if burst is not None else 3.0
+    if sampling_t is not None and disp and burst > window:
+        sampling_t.problem("burst_s", f"a displacement burst ({burst:g} s) must fit in the window ({window:g} s)")
+    return Sampling(fast_period_s=fast, window_s=window, min_coverage=coverage if coverage is not None else 0.9,
+                    displacement_channels=MappingProxyType(disp), burst_s=burst, burst_speed_channel=speed_channel)
 
 
 def _parse_factors(root: Table) -> list[Factor]:
@@ -223,12 +267,17 @@ def _check_columns_distinct(root: Table, factors: list[Factor], rec: RecordingLa
                          f'column "{rec.time_column}" is already used by {seen[rec.time_column]}')
 
 
-def _parse_acquisition(root: Table, factors: list[Factor]) -> tuple[list[Device], list[Channel]]:
+def _parse_acquisition(root: Table, factors: list[Factor],
+                       sampling: Sampling) -> tuple[list[Device], list[Channel]]:
     """``[devices.NAME]`` and ``[channels.NAME]``: their driver-specific keys are checked by the driver."""
     from drivers import registry  # the registry decides which drivers exist and what options they take
+    from gateway.errors import did_you_mean
 
     devices: list[Device] = []
+    drivers: dict[str, str] = {}  # every device whose driver is known, parsed or not: its channels are checked
+    device_tables: list[str] = []
     for dname, t in root.tables("devices", name_pattern=NAME):
+        device_tables.append(dname)
         known = registry.names()
         driver = t.str("driver", choices=known,
                        expected=None if known else "the name of an installed driver (none is installed)")
@@ -236,30 +285,74 @@ def _parse_acquisition(root: Table, factors: list[Factor]) -> tuple[list[Device]
             continue
         options = registry.parse_device_options(driver, t)
         t.done()
-        devices.append(Device(name=dname, driver=driver, options=options))
+        drivers[dname] = driver
+        if options is None:
+            continue
+        period = getattr(options, "period_s", None) or sampling.fast_period_s
+        if period > sampling.window_s:
+            t.problem("period_s", f"the device's period ({period:g} s) must not exceed the window "
+                                  f"({sampling.window_s:g} s)")
+        devices.append(Device(name=dname, driver=driver, options=options, period_s=period))
     by_name = {d.name: d for d in devices}
 
     channels: list[Channel] = []
     for cname, t in root.tables("channels", name_pattern=NAME):
-        dev = t.str("device", choices=list(by_name) or None,
-                    expected="the name of a [devices.NAME] table" if not by_name else "a string")
+        dev = t.str("device", choices=device_tables or None,
+                    expected=f"the name of a [devices.NAME] table ({', '.join(device_tables)})" if device_tables
+                    else "the name of a [devices.NAME] table (there are none)")
         unit = t.str("unit", default="")
-        if dev is None or dev not in by_name:
-            continue
-        address = registry.parse_channel_address(by_name[dev].driver, t)
+        if dev is None or dev not in drivers:
+            continue  # the device's own problem is reported with the device
+        address = registry.parse_channel_address(drivers[dev], t)
         t.done()
+        if address is None or dev not in by_name:
+            continue
         channels.append(Channel(name=cname, device=dev, unit=unit or "", address=address))
 
+    if devices and not root.doc.problems:
+        _check_link_budgets(root, devices, channels, sampling)
     if channels:
         names = [c.name for c in channels]
         for f in factors:
             if f.channel not in names:
-                from gateway.errors import did_you_mean
-
                 root.doc.problem(("factors", f.name, "channel"),
                                  f'no channel "{f.channel}": expected the name of a [channels.NAME] table'
                                  f"{did_you_mean(f.channel, names)}")
+        wanted = [(("sampling", "displacement_channels", a), c) for a, c in sampling.displacement_channels.items()]
+        if sampling.burst_speed_channel is not None:
+            wanted.append((("sampling", "burst_speed_channel"), sampling.burst_speed_channel))
+        for path, c in wanted:
+            if c not in names:
+                root.doc.problem(path, f'no channel "{c}": expected the name of a [channels.NAME] table'
+                                       f"{did_you_mean(c, names)}")
     return devices, channels
+
+
+def _check_link_budgets(root: Table, devices: list[Device], channels: list[Channel], sampling: Sampling) -> None:
+    """Refuse a period a device's link cannot physically meet, saying what it can."""
+    from drivers import registry
+
+    for d in devices:
+        addresses = [c.address for c in channels if c.device == d.name]
+        if not addresses:
+            continue
+        budget = registry.link_budget(d.driver, d.options, addresses)
+        if budget is None or budget.min_period_s <= d.period_s:
+            continue
+        own = getattr(d.options, "period_s", None) is not None
+        path = ("devices", d.name, "period_s") if own else ("devices", d.name)
+        whose = "" if own else " (sampling.fast_period_s)"
+        root.doc.problem(path, f"a period of {d.period_s * 1000:g} ms{whose} is faster than the link can go: "
+                               f"{budget.detail}, so it sustains at most {budget.max_rate_hz:.0f} Hz: set "
+                               f"devices.{d.name}.period_s >= {_round_up(budget.min_period_s)}")
+
+
+def _round_up(seconds: float) -> str:
+    """A period a little above ``seconds``, as a user would type it."""
+    for step in (0.0001, 0.0005, 0.001, 0.005, 0.01, 0.05, 0.1, 0.5, 1.0):
+        if seconds < 100 * step:
+            return f"{math.ceil(seconds / step - 1e-9) * step:.4g}"
+    return f"{math.ceil(seconds):g}"
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -287,8 +380,33 @@ def format_summary(profile: Profile) -> str:
     if profile.devices:
         lines.append(f"devices   {len(profile.devices)}: " +
                      ", ".join(f"{d.name} ({d.driver})" for d in profile.devices))
+        from drivers import registry
+
+        for d in profile.devices:
+            chans = profile.channels_of(d.name)
+            names = [c.name for c in chans]
+            budget = registry.link_budget(d.driver, d.options, [c.address for c in chans]) if chans else None
+            need = f" (the link needs {budget.min_period_s * 1000:.3g} ms a scan)" if budget else ""
+            lines.append(f"  {d.name}: {d.driver}, every {d.period_s * 1000:g} ms{need}, {len(names)} channel"
+                         f"{'s' if len(names) != 1 else ''}" + (f": {', '.join(names)}" if names else ""))
         lines.append(f"channels  {len(profile.channels)}: " + ", ".join(c.name for c in profile.channels))
+        disp = profile.sampling.displacement_channels
+        if disp:
+            lines.append(f"displacement bursts of {profile.sampling.burst_s:g} s at each window's end: "
+                         + ", ".join(f"{a}={c}" for a, c in disp.items())
+                         + (f" (whole revolutions of {profile.sampling.burst_speed_channel})"
+                            if profile.sampling.burst_speed_channel else ""))
     else:
         lines.append("devices   none (offline profile: recordings only)")
-    lines.append(f"compensation {'ENABLED: writes to the CNC' if profile.compensation.enabled else 'off (dry run)'}")
+    lines.append(_compensation_line(profile))
     return "\n".join(lines)
+
+
+def _compensation_line(profile: Profile) -> str:
+    c = profile.compensation
+    if not c.enabled:
+        return "compensation off (dry run)"
+    axes = ", ".join(f"{a.axis} {'-' if a.sign < 0 else '+'}estimate -> holding {a.register} ({a.data_type}, "
+                     f"{a.unit_um:g} um)" for a in c.axes)
+    return (f"compensation ENABLED: writes to the CNC at {c.host}:{c.port}: {axes}; limit {c.limit_um:g} um, "
+            f"step {c.max_step_um:g} um, deadband {c.deadband_um:g} um, on fault {c.on_fault}")

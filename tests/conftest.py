@@ -7,10 +7,9 @@ import time
 from pathlib import Path
 
 import pytest
+from tests_paths import PROFILES, ROOT, SHARED_DATA
 
-ROOT = Path(__file__).resolve().parent.parent
-PROFILES = ROOT / "profiles"
-SHARED_DATA = ROOT.parent / "shared" / "data"
+__all__ = ["PROFILES", "ROOT", "SHARED_DATA"]
 
 
 @pytest.fixture(autouse=True)

@@ -1,4 +1,5 @@
-"""Golden profile cases: each folder in profile_cases/ holds profile.toml and either expected-summary.txt
+"""Golden profile cases: each folder in profile_cases/ (offline sections) and driver_cases/ (devices and
+channels) holds profile.toml and either expected-summary.txt
 (``cncgw profile check`` succeeds and prints exactly that) or expected-error.txt (it fails with exactly
 those lines on stderr). Regenerate a case's expectation by deleting it and running with CNCGW_REGOLD=1.
 """
@@ -12,10 +13,11 @@ import pytest
 
 from gateway.cli import main
 
-CASES = sorted(p for p in (Path(__file__).parent / "profile_cases").iterdir() if p.is_dir())
+CASES = sorted(p for folder in ("profile_cases", "driver_cases")
+               for p in (Path(__file__).parent / folder).iterdir() if p.is_dir())
 
 
-@pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
+@pytest.mark.parametrize("case", CASES, ids=[f"{c.parent.name}/{c.name}" for c in CASES])
 def test_profile_case(case: Path, capsys, monkeypatch):
     monkeypatch.chdir(case)
     code = main(["profile", "check", "profile.toml"])

@@ -126,6 +126,8 @@ def _identify(
         report += describe_groups(es, fit.groups)
         report.append(f"steepest descent: {fit.evaluations} evaluations of E in {fit.wall_s:.2f} s")
     reference = {f: float(np.mean(es.u0[:, j])) for j, f in enumerate(factors)}
+    # the deviations the experiments covered: beyond them the model extrapolates (estimate warns)
+    info["deviation_range"] = {f: [float(es.du[j].min()), float(es.du[j].max())] for j, f in enumerate(factors)}
     model = ThermalModel(axes=tuple(axes), factors=tuple(factors), units=dict(units or {}), reference=reference,
                          paths={(p.axis, p.factor): p for p in paths}, machine=machine, info=info)
     return IdentifyResult(model=model, method=method, experiments=es.names, wall_s=time.perf_counter() - t0,

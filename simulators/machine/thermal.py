@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
+from gateway.model.discrete import split_delay
 from simulators.machine.drives import STAT_INDEX, STATS
 from simulators.machine.effects import Effects
 from simulators.machine.params import AXES, RAD_PER_RPM, MachineParams, Node
@@ -166,11 +167,10 @@ class ThermalModel:
         cd = self.effects.coolant_delay
         if cd is None:
             return None
-        m = math.floor(cd.delay_s / self.dt_s + 1e-12)
-        f = cd.delay_s - m * self.dt_s
+        m, f = split_delay(cd.delay_s, self.dt_s)
         tank = self.net.index("coolant_tank")
         g_full = self.Gam[:, tank]
-        g_recent = zoh(self.net, self.dt_s - f)[1][:, tank] if f > 1e-9 * self.dt_s else g_full
+        g_recent = zoh(self.net, self.dt_s - f)[1][:, tank] if f else g_full
         return m, g_recent, g_full - g_recent
 
     def heat(self, stats: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:

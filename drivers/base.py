@@ -1,0 +1,251 @@
+"""The one driver interface: a device, its channels, one ``read()`` that returns timestamped values.
+
+Modelled on python-can's ``BusABC``: the base class owns the public calls (:meth:`Driver.open`,
+:meth:`Driver.read`, an idempotent :meth:`Driver.close`, the context manager and a warning when a driver
+is dropped open); a protocol overrides three small hooks (``_connect``, ``_read_raw``, ``_disconnect``)
+and two class methods the profile loader calls (``parse_device_options``, ``parse_channel_address``).
+
+Errors: anything a hook raises is closed over (the transport is closed, so the next ``open()`` starts
+clean: pymodbus keeps a dead socket until ``close()``) and re-raised as a
+:class:`~gateway.errors.DriverError` (or :class:`~gateway.errors.DeviceTimeout`) naming the device.
+Timing, retries of the whole device, error counters and off-scan back-off are not here: the gateway's
+runner (:mod:`gateway.runner`) wraps every driver the same way.
+
+Quality: every value comes with a :class:`Quality`. ``GOOD`` and ``SATURATED`` values are used (a
+saturated converter reads a bound, so it is counted and reported); ``STALE`` (no fresh data, e.g. no CAN
+frame for a while) and ``BAD`` (a frame that did not decode) are not.
+"""
+
+from __future__ import annotations
+
+import abc
+import enum
+import math
+import struct
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from gateway.clock import Clock, RealClock
+from gateway.errors import DeviceTimeout, DriverError
+
+
+class Quality(enum.IntEnum):
+    """How far a value can be trusted; ordered from best to worst."""
+
+    GOOD = 0
+    SATURATED = 1  # the converter sat at its limit: the true value is beyond it
+    STALE = 2  # nothing new arrived for longer than the device allows: not used
+    BAD = 3  # the device answered but this value could not be decoded: not used
+
+
+@dataclass(frozen=True, slots=True)
+class Reading:
+    """One read of a device: clock time of the request, one value and one quality per channel."""
+
+    t_s: float
+    values: tuple[float, ...]
+    quality: tuple[Quality, ...]
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class DeviceOptions:
+    """Keys every ``[devices.NAME]`` table takes, whatever its driver.
+
+    ``period_s``: the fast period of this device (``None``: the profile's ``sampling.fast_period_s``);
+    ``timeout_s`` and ``retries``: per request; ``backoff_s`` .. ``backoff_max_s``: how long a failing device
+    stays off-scan (doubling, capped, jittered) before it is tried again.
+    """
+
+    period_s: float | None = None
+    timeout_s: float = 0.5
+    retries: int = 0
+    backoff_s: float = 1.0
+    backoff_max_s: float = 60.0
+
+
+def parse_common_options(table: Any, *, timeout_s: float = 0.5) -> dict[str, Any]:
+    """Read the keys of :class:`DeviceOptions` from a ``[devices.NAME]`` table (typed, with bounds)."""
+    out = {
+        "period_s": table.float("period_s", default=None, min=0.0, min_exclusive=True, max=60.0),
+        "timeout_s": table.float("timeout_s", default=timeout_s, min=0.0, min_exclusive=True, max=60.0),
+        "retries": table.int("retries", default=0, min=0, max=10),
+        "backoff_s": table.float("backoff_s", default=1.0, min=0.0, min_exclusive=True, max=3600.0),
+        "backoff_max_s": table.float("backoff_max_s", default=60.0, min=0.0, min_exclusive=True, max=86400.0),
+    }
+    for key, default in (("timeout_s", timeout_s), ("retries", 0), ("backoff_s", 1.0), ("backoff_max_s", 60.0)):
+        if out[key] is None:  # a bad value: already reported; keep going with the default
+            out[key] = default
+    if out["backoff_max_s"] < out["backoff_s"]:
+        table.problem("backoff_max_s", f"expected a number >= backoff_s ({out['backoff_s']:g}), "
+                                       f"got {out['backoff_max_s']:g}")
+        out["backoff_max_s"] = out["backoff_s"]
+    return out
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class LinkBudget:
+    """What a link can physically sustain for one scan of a device's channels.
+
+    ``min_period_s``: the shortest period one scan fits in; ``detail``: how that was worked out, for
+    the message that rejects a faster period.
+    """
+
+    min_period_s: float
+    detail: str
+
+    @property
+    def max_rate_hz(self) -> float:
+        return 1.0 / self.min_period_s if self.min_period_s > 0 else math.inf
+
+
+def serial_char_s(baudrate: int, *, bytesize: int = 8, parity: str = "N", stopbits: float = 1) -> float:
+    """Seconds one character takes on an asynchronous serial line (start bit + data + parity + stop)."""
+    bits = 1 + bytesize + (0 if parity == "N" else 1) + stopbits
+    return bits / baudrate
+
+
+class Driver(abc.ABC):
+    """One device and the channels read from it; see the module docstring.
+
+    Args:
+        name: the device's name in the profile (every message names it).
+        options: what ``parse_device_options`` returned for the device.
+        channels: ``(channel name, address)`` pairs, the addresses as ``parse_channel_address`` returned
+            them; values come back in this order.
+        clock: stamps each reading (the request's time).
+
+    """
+
+    #: protocol, for people: "Modbus TCP"
+    kind: ClassVar[str] = "device"
+
+    def __init__(self, *, name: str, options: Any, channels: Sequence[tuple[str, Any]],
+                 clock: Clock | None = None) -> None:
+        if not channels:
+            raise ValueError(f"device {name!r}: a driver needs at least one channel")
+        self.name = name
+        self.options = options
+        self.channel_names = tuple(c for c, _ in channels)
+        self.addresses = tuple(a for _, a in channels)
+        self.clock: Clock = clock if clock is not None else RealClock()
+        self._is_open = False
+        self._closed = False
+
+    # -- what the profile loader calls -------------------------------------------------------------------
+    @classmethod
+    @abc.abstractmethod
+    def parse_device_options(cls, table: Any) -> Any:
+        """Check the keys of a ``[devices.NAME]`` table (besides ``driver``); return frozen options."""
+
+    @classmethod
+    @abc.abstractmethod
+    def parse_channel_address(cls, table: Any) -> Any:
+        """Check the address keys of a ``[channels.NAME]`` table; return a frozen address."""
+
+    @classmethod
+    def link_budget(cls, options: Any, addresses: Sequence[Any]) -> LinkBudget | None:
+        """What the link can sustain for one scan of ``addresses``; ``None`` when it sets no limit."""
+        return None
+
+    # -- what protocols provide --------------------------------------------------------------------------
+    @abc.abstractmethod
+    def _connect(self) -> None:
+        """Open the transport (called by :meth:`open`)."""
+
+    @abc.abstractmethod
+    def _read_raw(self) -> tuple[Sequence[float], Sequence[Quality]]:
+        """One scan of every channel: values in engineering units and their qualities."""
+
+    @abc.abstractmethod
+    def _disconnect(self) -> None:
+        """Close the transport; must not raise (called after errors too)."""
+
+    # -- the public calls --------------------------------------------------------------------------------
+    @property
+    def is_open(self) -> bool:
+        return self._is_open
+
+    def open(self) -> None:
+        """Connect; raise :class:`DriverError` naming the device when it cannot."""
+        if self._closed:
+            raise DriverError(f'device "{self.name}": the driver was closed; make a new one')
+        if self._is_open:
+            return
+        try:
+            self._connect()
+        except DriverError:
+            self._disconnect()
+            raise
+        except Exception as exc:  # every transport has its own exceptions: name the device, keep the cause
+            self._disconnect()
+            raise DriverError(f'device "{self.name}" ({self.kind}): cannot connect: {_describe(exc)}') from exc
+        self._is_open = True
+
+    def read(self) -> Reading:
+        """Read every channel once. On any failure the transport is closed and :class:`DriverError` raised."""
+        if not self._is_open:
+            self.open()
+        t = self.clock.now()
+        try:
+            values, quality = self._read_raw()
+        except DriverError:
+            self._drop()
+            raise
+        except TimeoutError as exc:
+            self._drop()
+            raise DeviceTimeout(f'device "{self.name}" ({self.kind}): no answer: {_describe(exc)}') from exc
+        except Exception as exc:
+            self._drop()
+            raise DriverError(f'device "{self.name}" ({self.kind}): read failed: {_describe(exc)}') from exc
+        return Reading(t_s=t, values=tuple(values), quality=tuple(quality))
+
+    def close(self) -> None:
+        """Close the transport (idempotent); the driver cannot be opened again."""
+        self._closed = True
+        self._drop()
+
+    def _drop(self) -> None:
+        if self._is_open:
+            self._is_open = False
+        self._disconnect()
+
+    def __enter__(self) -> Driver:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        if getattr(self, "_is_open", False) and not getattr(self, "_closed", True):
+            warnings.warn(f"device {self.name!r} was not closed properly", ResourceWarning, stacklevel=1)
+            self._drop()
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r}, channels={list(self.channel_names)})"
+
+
+def _describe(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+# -- helpers several drivers share ----------------------------------------------------------------------
+_STRUCT = {"int16": ">h", "uint16": ">H", "int32": ">i", "uint32": ">I", "float32": ">f"}
+
+
+def unpack_words(words: Sequence[int], data_type: str, *, word_order: str, byte_order: str) -> float:
+    """Decode Modbus registers (16-bit words as received) into a number.
+
+    ``word_order="big"``: the first register holds the high word (ABCD); ``"little"``: the low word
+    (CDAB). ``byte_order="little"``: the two bytes inside each register are swapped (BADC / DCBA).
+    """
+    ws = list(words)
+    if word_order == "little":
+        ws.reverse()
+    raw = b"".join(w.to_bytes(2, "big") for w in ws)
+    if byte_order == "little":
+        raw = b"".join(raw[i:i + 2][::-1] for i in range(0, len(raw), 2))
+    return float(struct.unpack(_STRUCT[data_type], raw)[0])

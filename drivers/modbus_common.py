@@ -1,0 +1,193 @@
+"""What Modbus TCP and Modbus RTU share: register addresses, request planning, decoding (pymodbus 3.x).
+
+A channel says where its value sits (``address``, 0-based as on the wire; ``function`` 3 holding or 4
+input registers), how it is encoded (``data_type`` int16/uint16/int32/uint32/float32, ``word_order`` and
+``byte_order``) and how raw numbers become engineering units (``value = raw * scale + offset``).
+
+Channels on contiguous registers of one function are merged into one request (at most 125 registers,
+the protocol's limit), so eight int16 inputs on registers 0..7 cost one round trip. A raw value at the
+limit of an integer type is flagged ``SATURATED`` (a converter at over-range sits there); a NaN float is
+``BAD``. pymodbus clients are not thread-safe: a driver and its client belong to the one thread that
+samples the device.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from drivers.base import Driver, Quality, unpack_words
+from gateway.errors import DeviceTimeout, DriverError
+
+DATA_TYPES = ("int16", "uint16", "int32", "uint32", "float32")
+ORDERS = ("big", "little")
+FUNCTIONS = (3, 4)
+MAX_REGISTERS = 125  # per read request (Modbus application protocol, 6.3/6.4)
+_WORDS = {"int16": 1, "uint16": 1, "int32": 2, "uint32": 2, "float32": 2}
+#: raw values a converter reports when it sits at its limit (unsigned zero is a normal reading)
+_SATURATED = {"int16": (-32768, 32767), "uint16": (None, 65535), "int32": (-(2**31), 2**31 - 1),
+              "uint32": (None, 2**32 - 1)}
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class RegisterAddress:
+    """Where a channel's value sits in a Modbus device and how to turn it into engineering units."""
+
+    address: int
+    function: int = 4
+    data_type: str = "int16"
+    word_order: str = "big"
+    byte_order: str = "big"
+    scale: float = 1.0
+    offset: float = 0.0
+
+    @property
+    def n_registers(self) -> int:
+        return _WORDS[self.data_type]
+
+    def decode(self, words: Sequence[int]) -> tuple[float, Quality]:
+        """Engineering value and quality from this channel's registers."""
+        raw = unpack_words(words, self.data_type, word_order=self.word_order, byte_order=self.byte_order)
+        if self.data_type == "float32":
+            if math.isnan(raw):
+                return math.nan, Quality.BAD
+            quality = Quality.SATURATED if math.isinf(raw) else Quality.GOOD
+        else:
+            lo, hi = _SATURATED[self.data_type]
+            quality = Quality.SATURATED if raw in (lo, hi) else Quality.GOOD
+        return raw * self.scale + self.offset, quality
+
+
+def parse_register_address(table: Any) -> RegisterAddress | None:
+    """Check the address keys of a ``[channels.NAME]`` table on a Modbus device."""
+    address = table.int("address", min=0, max=65535, expected="a register address in 0..65535 (0-based, as on "
+                                                              "the wire)")
+    function = table.int("function", default=4, expected="4 (input registers) or 3 (holding registers)")
+    if function is not None and function not in FUNCTIONS:
+        table.problem("function", f"expected 4 (input registers) or 3 (holding registers), got {function} (an integer)")
+        function = None
+    data_type = table.str("data_type", default="int16", choices=DATA_TYPES)
+    word_order = table.str("word_order", default="big", choices=ORDERS)
+    byte_order = table.str("byte_order", default="big", choices=ORDERS)
+    scale = table.float("scale", default=1.0)
+    offset = table.float("offset", default=0.0)
+    if scale == 0:
+        table.problem("scale", "expected a non-zero number (engineering units per count), got 0")
+        scale = None
+    if None in (address, function, data_type, word_order, byte_order, scale, offset):
+        return None
+    if address + _WORDS[data_type] - 1 > 65535:
+        table.problem("address", f"a {data_type} at {address} runs past register 65535")
+        return None
+    return RegisterAddress(address=address, function=function, data_type=data_type, word_order=word_order,
+                           byte_order=byte_order, scale=scale, offset=offset)
+
+
+@dataclass(frozen=True, slots=True)
+class Request:
+    """One read request and the channels it serves: ``(channel index, first word in the answer)``."""
+
+    function: int
+    start: int
+    count: int
+    members: tuple[tuple[int, int], ...]
+
+
+def plan_requests(addresses: Sequence[RegisterAddress]) -> list[Request]:
+    """Merge channels on contiguous (or shared) registers of one function into as few requests as possible."""
+    requests: list[Request] = []
+    for function in FUNCTIONS:
+        chans = sorted((a.address, i) for i, a in enumerate(addresses) if a.function == function)
+        start = end = -1
+        members: list[tuple[int, int]] = []
+        for addr, i in chans:
+            last = addr + addresses[i].n_registers  # one past the channel's last register
+            if members and addr <= end and max(end, last) - start <= MAX_REGISTERS:
+                end = max(end, last)
+            else:
+                if members:
+                    requests.append(_request(function, start, end, members))
+                start, end, members = addr, last, []
+            members.append((i, addr))
+        if members:
+            requests.append(_request(function, start, end, members))
+    return requests
+
+
+def _request(function: int, start: int, end: int, members: list[tuple[int, int]]) -> Request:
+    return Request(function=function, start=start, count=end - start,
+                   members=tuple((i, addr - start) for i, addr in members))
+
+
+def describe_requests(requests: Sequence[Request]) -> str:
+    """``2 requests (fc4 0..8, fc4 100..117)``, for messages."""
+    parts = [f"fc{r.function} {r.start}..{r.start + r.count - 1}" for r in requests]
+    return f"{len(requests)} request{'s' if len(requests) != 1 else ''} ({', '.join(parts)})"
+
+
+class ModbusDriver(Driver):
+    """Reads register channels with a pymodbus sync client (made by :meth:`_make_client`)."""
+
+    kind: ClassVar[str] = "Modbus"
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.requests = plan_requests(self.addresses)
+        self._client: Any = None
+
+    def _make_client(self) -> Any:
+        raise NotImplementedError
+
+    def _where(self) -> str:
+        raise NotImplementedError
+
+    def _connect(self) -> None:
+        client = self._make_client()
+        self._client = client
+        if not client.connect():
+            raise DriverError(f'device "{self.name}" ({self.kind}): cannot connect to {self._where()}')
+
+    def _disconnect(self) -> None:
+        client, self._client = self._client, None
+        if client is not None:
+            with contextlib.suppress(Exception):  # closing after an error must never raise
+                client.close()
+
+    def _read_raw(self) -> tuple[list[float], list[Quality]]:
+        from pymodbus.exceptions import ModbusIOException
+
+        client = self._client
+        unit = self.options.unit_id
+        values = [math.nan] * len(self.addresses)
+        quality = [Quality.BAD] * len(self.addresses)
+        for req in self.requests:
+            call = client.read_input_registers if req.function == 4 else client.read_holding_registers
+            try:
+                rr = call(req.start, count=req.count, device_id=unit)
+            except ModbusIOException as exc:
+                opt = self.options
+                raise DeviceTimeout(
+                    f'device "{self.name}" ({self.kind}): no valid answer to fc{req.function} {req.start}..'
+                    f"{req.start + req.count - 1} within {opt.timeout_s:g} s x {opt.retries + 1} "
+                    f"attempt{'s' if opt.retries else ''}: {exc}") from exc
+            if rr.isError():
+                code = getattr(rr, "exception_code", None)
+                raise DriverError(f'device "{self.name}" ({self.kind}): fc{req.function} {req.start}..'
+                                  f"{req.start + req.count - 1} answered with exception {code} "
+                                  f"({_EXCEPTIONS.get(code, 'unknown')})")
+            regs = rr.registers
+            if len(regs) < req.count:
+                raise DriverError(f'device "{self.name}" ({self.kind}): fc{req.function} {req.start}: '
+                                  f"expected {req.count} registers, got {len(regs)}")
+            for i, first in req.members:
+                a = self.addresses[i]
+                values[i], quality[i] = a.decode(regs[first:first + a.n_registers])
+        return values, quality
+
+
+_EXCEPTIONS = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
+               4: "device failure", 6: "device busy", 10: "gateway path unavailable",
+               11: "gateway target failed to respond"}

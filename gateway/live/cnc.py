@@ -1,0 +1,134 @@
+"""The CNC's compensation registers over Modbus TCP, on the Modbus driver's client handling.
+
+:class:`CncLink` is a :class:`drivers.modbus_tcp.ModbusTcpDriver` whose channels are the CNC's read-back
+registers (the applied offset of each axis, the status word), so reading, decoding, connecting and
+closing on any error (pymodbus keeps a dead socket until ``close()``) are the driver's. It adds the three
+writes the compensation needs: the offset commands (one request per block of contiguous registers, so a
+CNC that refuses one value refuses the whole block), the heartbeat, the enable coil.
+
+Status word (input register ``status_register``), as the bundled simulated CNC lays it out: bit 0 ACTIVE,
+1 WATCHDOG_TRIPPED, 2 RAMPING, 3 LAST_WRITE_REJECTED, 4 HEARTBEAT_OK.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from drivers.modbus_common import RegisterAddress
+from drivers.modbus_tcp import ModbusTcpDriver, ModbusTcpOptions
+from gateway.clock import Clock
+from gateway.errors import CompensationError, DeviceTimeout, DriverError
+from gateway.live.settings import Compensation
+
+ACTIVE, WATCHDOG_TRIPPED, RAMPING, LAST_WRITE_REJECTED, HEARTBEAT_OK = (1 << i for i in range(5))
+_EXCEPTIONS = {1: "illegal function", 2: "illegal data address", 3: "illegal data value", 4: "device failure",
+               6: "device busy"}
+
+
+class CncRejected(CompensationError):
+    """The CNC answered a write with a Modbus exception: nothing of that request was applied."""
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class CncState:
+    """What the CNC reports: applied offsets (counts and um per axis) and its status word (``None``: not mapped)."""
+
+    applied_counts: Mapping[str, int]
+    applied_um: Mapping[str, float]
+    status: int | None
+
+    @property
+    def active(self) -> bool | None:
+        return None if self.status is None else bool(self.status & ACTIVE)
+
+    @property
+    def tripped(self) -> bool | None:
+        return None if self.status is None else bool(self.status & WATCHDOG_TRIPPED)
+
+
+class CncLink(ModbusTcpDriver):
+    """The CNC's compensation registers (see the module docstring); one client, used by one thread."""
+
+    kind: ClassVar[str] = "CNC compensation, Modbus TCP"
+
+    def __init__(self, settings: Compensation, *, clock: Clock | None = None, name: str = "cnc") -> None:
+        if settings.host is None:
+            raise ValueError("the CNC link needs compensation.host")
+        options = ModbusTcpOptions(host=settings.host, port=settings.port, unit_id=settings.unit_id,
+                                   timeout_s=settings.timeout_s, retries=settings.retries)
+        channels: list[tuple[str, Any]] = [
+            (f"{a.axis}_applied", RegisterAddress(address=a.readback, function=4, data_type=a.data_type,
+                                                  word_order=a.word_order)) for a in settings.axes]
+        if settings.status_register is not None:
+            channels.append(("status", RegisterAddress(address=settings.status_register, function=4,
+                                                       data_type="uint16")))
+        super().__init__(name=name, options=options, channels=channels, clock=clock)
+        self.settings = settings
+
+    # -- reading ------------------------------------------------------------------------------------------
+    def state(self) -> CncState:
+        """Read the applied offsets and the status word (raises :class:`DriverError` on failure)."""
+        reading = self.read()
+        s = self.settings
+        counts = {a.axis: int(v) for a, v in zip(s.axes, reading.values, strict=False)}
+        status = int(reading.values[-1]) if s.status_register is not None else None
+        return CncState(applied_counts=counts, applied_um={a.axis: counts[a.axis] * a.unit_um for a in s.axes},
+                        status=status)
+
+    # -- writing ------------------------------------------------------------------------------------------
+    def write_offsets(self, counts: Mapping[str, int]) -> None:
+        """Write the offset commands of the axes in ``counts``; contiguous registers go in one request."""
+        words: dict[int, int] = {}
+        for a in self.settings.axes:
+            if a.axis in counts:
+                for k, w in enumerate(a.encode(counts[a.axis])):
+                    words[a.register + k] = w
+        for start, block in _blocks(words):
+            self._call(f"offsets fc16 {start}..{start + len(block) - 1}",
+                       lambda c, s=start, b=block: c.write_registers(s, values=b, device_id=self.options.unit_id))
+
+    def beat(self, value: int) -> None:
+        """Write the heartbeat register (any change of value is a beat)."""
+        reg = self.settings.heartbeat_register
+        if reg is not None:
+            self._call(f"heartbeat fc6 {reg}",
+                       lambda c: c.write_register(reg, value & 0xFFFF, device_id=self.options.unit_id))
+
+    def set_enabled(self, on: bool) -> None:
+        """Write the enable coil (1 also clears a watchdog trip on the bundled CNC)."""
+        coil = self.settings.enable_coil
+        if coil is not None:
+            self._call(f"enable fc5 {coil}", lambda c: c.write_coil(coil, on, device_id=self.options.unit_id))
+
+    def _call(self, what: str, request: Callable[[Any], Any]) -> None:
+        from pymodbus.exceptions import ModbusIOException
+
+        if not self.is_open:
+            self.open()
+        try:
+            rr = request(self._client)
+        except ModbusIOException as exc:
+            self._drop()
+            o = self.options
+            raise DeviceTimeout(f'device "{self.name}" ({self.kind}): no valid answer to {what} within '
+                                f"{o.timeout_s:g} s x {o.retries + 1}: {exc}") from exc
+        except Exception as exc:  # a reset connection surfaces as a raw OSError: close, report, reconnect later
+            self._drop()
+            raise DriverError(f'device "{self.name}" ({self.kind}): {what} failed: {type(exc).__name__}: {exc}') \
+                from exc
+        if rr.isError():
+            code = getattr(rr, "exception_code", None)
+            raise CncRejected(f'device "{self.name}" ({self.kind}): {what} refused with exception {code} '
+                              f"({_EXCEPTIONS.get(code, 'unknown')})")
+
+
+def _blocks(words: Mapping[int, int]) -> list[tuple[int, list[int]]]:
+    out: list[tuple[int, list[int]]] = []
+    for addr in sorted(words):
+        if out and out[-1][0] + len(out[-1][1]) == addr and len(out[-1][1]) < 123:
+            out[-1][1].append(words[addr])
+        else:
+            out.append((addr, [words[addr]]))
+    return out

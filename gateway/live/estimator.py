@@ -1,0 +1,254 @@
+"""The live estimate: one estimator step per finished window, rebuilt from the durable records on start.
+
+The estimator's state is a pure function of the factor history (``LiveEstimator.from_history``), so nothing
+private is persisted: on start the history is read back from the record store and the state recomputed in
+batch; a ``kill -9`` loses nothing the store had committed.
+
+Initial state: the model's ``reference`` levels (the machine idle in thermal equilibrium) at the start of
+the first stored window, not that window's factors: the gateway can start in the middle of work.
+
+Gap policy (``[live] gap_policy``), the same live and on rebuild, so a restart reproduces the state an
+uninterrupted run would have had for the same records:
+
+- a window that is missing (the gateway was down) or has no good factors (``insufficient``: devices down,
+  too little coverage; or a NaN factor) is filled: ``"hold"`` takes the last good window's factors for
+  windows ending at most ``gap_hold_max_s`` after it, then the reference (idle); ``"reference"`` takes the
+  reference at once;
+- every filled window is counted and reported (:class:`Gap`, health, logs, the audit log), and an estimate
+  that rests on a filled window is not used for compensation (the writer holds).
+
+Only history that can still matter is read on start: twenty times the model's slowest time constant
+(``[live] history_max_h`` overrides); older inputs have decayed to less than e^-20 of their effect.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from types import MappingProxyType
+
+import numpy as np
+
+from gateway.live.settings import Live
+from gateway.model import LiveEstimator, ThermalModel
+from gateway.windows import WindowRecord
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Gap:
+    """Windows ``first``..``last`` (indices) that had no good factors and were filled by the gap policy."""
+
+    first: int
+    last: int
+    policy: str
+    reason: str  # "gateway down" or why the windows were bad
+
+    @property
+    def windows(self) -> int:
+        return self.last - self.first + 1
+
+    def describe(self, window_s: float) -> str:
+        return (f"windows {self.first}..{self.last} ({self.windows} x {window_s:g} s, {self.reason}) filled by "
+                f"gap policy {self.policy}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class EstimateUpdate:
+    """The estimate after one window.
+
+    ``usable``: the window's own factors were good and nothing before it within the estimator's memory was
+    filled in place of bad data *in this window*: compensation may follow it. Otherwise ``reason`` says why.
+    """
+
+    index: int
+    end_s: float
+    estimate_um: Mapping[str, float]
+    next_um: Mapping[str, float]  # predicted for the end of the next window, the factors held
+    factors: Mapping[str, float]
+    usable: bool
+    reason: str = ""
+    filled: int = 0  # windows filled (this one included when it was bad)
+    first_live: bool = False  # the first window after start: the gateway joined it part-way
+    notes: tuple[str, ...] = ()
+
+
+def bad_reason(record: WindowRecord, factors: Iterable[str], channels: Mapping[str, str] | None = None) -> str:
+    """Why a record cannot drive the estimate (``""`` when it can).
+
+    ``channels``: factor -> its channel; a factor channel with saturated samples makes the window bad (the
+    converter sat at its limit: the true value, and so the factor, is beyond what was read).
+    """
+    if record.status != "good":
+        errs = f"; devices in error: {', '.join(record.devices_in_error)}" if record.devices_in_error else ""
+        return f"window {record.index} {record.status}{errs}"
+    missing = [f for f in factors if not math.isfinite(record.factors.get(f, math.nan))]
+    if missing:
+        return f"window {record.index}: no finite value for {', '.join(missing)}"
+    for f, ch in (channels or {}).items():
+        stats = record.channels.get(ch)
+        if stats is not None and stats.saturated:
+            return f"window {record.index}: channel {ch} ({f}) saturated in {stats.saturated} samples"
+    return ""
+
+
+class FactorHistory:
+    """Turns window records into the estimator's input columns (deviations from the reference), gaps filled."""
+
+    def __init__(self, model: ThermalModel, window_s: float, live: Live,
+                 channels: Mapping[str, str] | None = None) -> None:
+        self.model = model
+        self.channels = dict(channels or {})
+        self.window_s = float(window_s)
+        self.live = live
+        self.reference = model.reference_vector()
+        self.last_index: int | None = None
+        self.last_good_du = np.zeros(len(model.factors))
+        self.last_good_end_s: float | None = None
+        self.gaps: list[Gap] = []
+        self.filled_total = 0
+
+    def _fill_column(self, index: int) -> np.ndarray:
+        end = (index + 1) * self.window_s
+        if (self.live.gap_policy == "hold" and self.last_good_end_s is not None
+                and end - self.last_good_end_s <= self.live.gap_hold_max_s + 1e-9):
+            return self.last_good_du.copy()
+        return np.zeros_like(self.last_good_du)
+
+    def _note_gap(self, first: int, last: int, reason: str) -> Gap:
+        gap = Gap(first=first, last=last, policy=self.live.gap_policy, reason=reason)
+        prev = self.gaps[-1] if self.gaps else None
+        if prev is not None and prev.last == first - 1 and prev.reason == reason:
+            gap = Gap(first=prev.first, last=last, policy=prev.policy, reason=reason)
+            self.gaps[-1] = gap
+        else:
+            self.gaps.append(gap)
+        self.filled_total += last - first + 1
+        return gap
+
+    def advance(self, record: WindowRecord) -> tuple[np.ndarray, int, str]:
+        """Input columns (factors, k) up to and including ``record``: missing windows first, then its own.
+
+        Returns ``(columns, filled, reason)``; ``reason`` is ``""`` when the record's own factors were used.
+        """
+        if self.last_index is not None and record.index <= self.last_index:
+            raise ValueError(f"window {record.index} is not after window {self.last_index}")
+        cols = []
+        filled = 0
+        if self.last_index is not None and record.index > self.last_index + 1:
+            first, last = self.last_index + 1, record.index - 1
+            for j in range(first, last + 1):
+                cols.append(self._fill_column(j))
+            filled += last - first + 1
+            self._note_gap(first, last, "gateway down: no record")
+        reason = bad_reason(record, self.model.factors, self.channels)
+        if reason:
+            cols.append(self._fill_column(record.index))
+            filled += 1
+            self._note_gap(record.index, record.index, "window without good factors")
+        else:
+            u = np.array([record.factors[f] for f in self.model.factors], dtype=float)
+            du = u - self.reference
+            self.last_good_du = du
+            self.last_good_end_s = record.end_s
+            cols.append(du)
+        self.last_index = record.index
+        return np.column_stack(cols), filled, reason
+
+
+def history_windows(model: ThermalModel, window_s: float, live: Live) -> int:
+    """How many windows of stored history the rebuild reads (see the module docstring)."""
+    if live.history_max_h is not None:
+        return max(1, math.ceil(live.history_max_h * 3600.0 / window_s))
+    slowest = max((tau for p in model.paths.values() for t in p.terms for tau in t.time_constants_s),
+                  default=window_s)
+    delay = max((p.delay_s for p in model.paths.values()), default=0.0)
+    return max(1, math.ceil((20.0 * slowest + delay) / window_s))
+
+
+class Estimator:
+    """The live estimator of one model at one window length; steps on each record (a sink).
+
+    Args:
+        model: the identified model (inputs are deviations from ``model.reference``).
+        window_s: the profile's window.
+        live: the gap policy.
+        channels: factor -> channel (saturated samples on it make a window bad).
+
+    :meth:`rebuild` recomputes the state from stored records before the first live window.
+
+    """
+
+    def __init__(self, model: ThermalModel, *, window_s: float, live: Live,
+                 channels: Mapping[str, str] | None = None) -> None:
+        self.model = model
+        self.window_s = float(window_s)
+        self.live = live
+        self.dm = model.discretize(window_s)
+        self.estimator: LiveEstimator = self.dm.live()
+        self.history = FactorHistory(model, window_s, live, channels)
+        self.last: EstimateUpdate | None = None
+        self.rebuilt_windows = 0
+        self.live_windows = 0
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        return self.model.axes
+
+    def rebuild(self, records: Iterable[WindowRecord]) -> int:
+        """Recompute the state from stored ``records`` (window order) in batch; returns windows replayed."""
+        if self.history.last_index is not None:
+            raise RuntimeError("rebuild() comes before the first live window")
+        cols = []
+        last = None
+        for r in records:
+            c, _, _ = self.history.advance(r)
+            cols.append(c)
+            last = r
+        if not cols:
+            return 0
+        du = np.concatenate(cols, axis=1)
+        self.estimator = LiveEstimator.from_history(self.dm, du)
+        self.rebuilt_windows = du.shape[1]
+        assert last is not None
+        y = self.estimator.output()
+        self.last = EstimateUpdate(index=last.index, end_s=last.end_s, estimate_um=self._axes_map(y),
+                                   next_um=self._predict(du[:, -1]),
+                                   factors=MappingProxyType(dict(last.factors)), usable=False,
+                                   reason="rebuilt from the records: no live window yet")
+        return du.shape[1]
+
+    def _axes_map(self, y: np.ndarray) -> Mapping[str, float]:
+        return MappingProxyType({a: float(v) for a, v in zip(self.model.axes, y, strict=True)})
+
+    def _predict(self, du: np.ndarray) -> Mapping[str, float]:
+        """The estimate one window ahead if the factors stay at ``du`` (the state is not touched)."""
+        # only the state is copied: the discretised model and its sections are shared (read-only). This
+        # knows LiveEstimator keeps its sections in ``_flat``; a ``LiveEstimator.peek(du)`` would be cleaner.
+        est = self.estimator
+        shared = getattr(est, "_flat", None)
+        memo = {id(self.dm): self.dm} | ({id(shared): shared} if shared is not None else {})
+        ahead = copy.deepcopy(est, memo=memo)
+        return self._axes_map(ahead.step(du))
+
+    def update(self, record: WindowRecord) -> EstimateUpdate:
+        """Step through ``record`` (and any windows missing before it); return the new estimate."""
+        cols, filled, reason = self.history.advance(record)
+        y = None
+        for k in range(cols.shape[1]):
+            y = self.estimator.step(cols[:, k])
+        assert y is not None
+        if filled and not reason:
+            gap = self.history.gaps[-1]
+            log.warning("%s", gap.describe(self.window_s))
+        upd = EstimateUpdate(index=record.index, end_s=record.end_s, estimate_um=self._axes_map(y),
+                             next_um=self._predict(cols[:, -1]),
+                             factors=MappingProxyType(dict(record.factors)), usable=not reason, reason=reason,
+                             filled=filled, first_live=self.live_windows == 0, notes=record.notes)
+        self.live_windows += 1
+        self.last = upd
+        return upd

@@ -1,0 +1,260 @@
+"""``cncgw run``: acquisition, durable records, the live estimate, the compensation writer, OPC UA, health.
+
+Data path per finished window, on the window closer's thread (heavy work stays off the samplers)::
+
+    samplers -> WindowCloser -> RecordStore.append (durable first) -> Estimator.update -> writer.submit
+                                                                                       -> health, OPC UA, log
+
+The record is committed before the estimate that follows from it is acted on, so whatever the CNC was
+given can be recomputed from the store after a crash.
+
+Start order (Telegraf's agent): consumers before producers: the store and the audit log, the estimator
+(rebuilt from the stored history), the compensation writer (its thread connects to the CNC and starts the
+heartbeat), the OPC UA server, then the acquisition (window closer, then one sampler thread per device).
+Stop order is the reverse: producers first, so no window is handed to a stopped consumer.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from drivers.base import Driver
+from gateway.clock import Clock, ManualClock
+from gateway.compensation import CompensationWriter
+from gateway.live.audit import AUDIT_NAME, Alarms, AuditLog
+from gateway.live.cnc import CncLink
+from gateway.live.estimator import EstimateUpdate, Estimator, history_windows
+from gateway.model import ThermalModel
+from gateway.profile import Profile
+from gateway.records import STORE_NAME, RecordStore
+from gateway.windows import WindowRecord
+
+log = logging.getLogger("gateway.live")
+
+Listener = Callable[[WindowRecord, EstimateUpdate], None]
+
+
+class LiveGateway:
+    """The gateway of one machine, live; see the module docstring.
+
+    Args:
+        profile: the machine (devices, channels, factors, ``[live]``, ``[compensation]``, ``[opcua]``).
+        model: its identified model.
+        data_dir: where ``records.sqlite`` and ``audit.sqlite`` live (created if needed).
+        clock: the shared clock (a :class:`ManualClock` runs stepped: :meth:`run_stepped`).
+        opcua: serve OPC UA (default: ``profile.opcua.enabled``).
+        listeners: called with each record and the estimate that followed (closer thread; keep them cheap).
+        spin_s, rt_priority: the samplers' (see :class:`gateway.sampler.Acquisition`).
+        link_factory: makes the CNC link (default: from ``[compensation]``).
+        driver_factories: device name -> driver factory (see :class:`~gateway.sampler.Acquisition`).
+
+    Use as a context manager, or :meth:`start` / :meth:`stop`.
+
+    """
+
+    def __init__(self, profile: Profile, *, model: ThermalModel, data_dir: str | Path, clock: Clock,
+                 opcua: bool | None = None, listeners: Sequence[Listener] = (), spin_s: float = 0.0,
+                 rt_priority: int = 0, link_factory: Callable[[], CncLink] | None = None,
+                 driver_factories: dict[str, Callable[[], Driver]] | None = None) -> None:
+        self.profile = profile
+        self.model = model
+        self.data_dir = Path(data_dir)
+        self.clock = clock
+        self.stepped = isinstance(clock, ManualClock)
+        self.serve_opcua = profile.opcua.enabled if opcua is None else opcua
+        self.listeners = list(listeners)
+        self._spin_s = spin_s
+        self._rt_priority = rt_priority
+        self._link_factory = link_factory
+        self._driver_factories = driver_factories
+        self.store: RecordStore | None = None
+        self.audit: AuditLog | None = None
+        self.alarms: Alarms | None = None
+        self.estimator: Estimator | None = None
+        self.writer: CompensationWriter | None = None
+        self.opcua: Any = None
+        self.acquisition: Any = None
+        self.started_wall: float | None = None
+        self.started_s: float | None = None
+        self.windows_live = 0
+        self.update_s: list[float] = []  # estimator step time per window (wall s)
+        self.last_record: WindowRecord | None = None
+        self._state = "new"
+        self._lock = threading.Lock()
+
+    # -- lifecycle ----------------------------------------------------------------------------------------
+    def start(self) -> LiveGateway:
+        """Start consumers, then producers (see the module docstring)."""
+        if self._state != "new":
+            raise RuntimeError(f"a gateway starts once; this one is {self._state}")
+        self._state = "starting"
+        try:
+            self._start()
+        except BaseException:
+            self.stop()
+            raise
+        self._state = "running"
+        return self
+
+    def _start(self) -> None:
+        from gateway.sampler import Acquisition
+
+        p = self.profile
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        self.store = RecordStore(self.data_dir / STORE_NAME, profile=p)
+        self.audit = AuditLog(self.data_dir / AUDIT_NAME)
+        self.alarms = Alarms(audit=self.audit, on_change=self._publish_health)
+        now = self.clock.now()
+        self.started_s, self.started_wall = now, time.monotonic()
+        mode = "writing" if p.compensation.enabled else "dry run"
+        self.audit.event(now, "start", "gateway", f"{p.name}: compensation {mode}")
+
+        self.estimator = Estimator(self.model, window_s=p.sampling.window_s, live=p.live,
+                                   channels={f.name: f.channel for f in p.factors})
+        if self.store.last_index is not None:
+            since = self.store.last_index + 1 - history_windows(self.model, p.sampling.window_s, p.live)
+            t0 = time.perf_counter()
+            n = self.estimator.rebuild(self.store.windows(since=since))
+            gaps = self.estimator.history.gaps
+            log.info("estimator rebuilt from %d stored windows (%d filled by gap policy %s) in %.2f s", n,
+                     self.estimator.history.filled_total, p.live.gap_policy, time.perf_counter() - t0)
+            for g in gaps[-3:]:
+                self.audit.event(now, "gap", "history", g.describe(p.sampling.window_s))
+            self.audit.event(now, "rebuild", "estimator", f"{n} windows replayed up to window {self.store.last_index}")
+
+        self.writer = CompensationWriter(p.compensation, clock=self.clock, window_s=p.sampling.window_s,
+                                         stale_after_s=p.live.stale_after_s, alarms=self.alarms, audit=self.audit,
+                                         link_factory=self._link_factory)
+        if not self.stepped:
+            self.writer.start()
+        else:
+            self.writer.service()
+
+        if self.serve_opcua:
+            from gateway.opcua import OpcUaServer
+
+            self.opcua = OpcUaServer(p.opcua, profile=p, model=self.model,
+                                     on_hold=self.writer.request_hold if p.opcua.writable else None)
+            self.opcua.start()
+
+        self.acquisition = Acquisition(p, clock=self.clock, sinks=[self.store, self._on_record], spin_s=self._spin_s,
+                                       rt_priority=self._rt_priority, driver_factories=self._driver_factories)
+        if not self.stepped:
+            self.acquisition.start()
+        self.writer.expect_inputs()
+        log.info("gateway %s running: %d device(s), compensation %s%s", p.name, len(self.acquisition.samplers),
+                 "WRITING to " + f"{p.compensation.host}:{p.compensation.port}" if p.compensation.enabled else
+                 "dry run", f", OPC UA at {self.opcua.endpoint}" if self.opcua is not None else "")
+
+    def stop(self) -> None:
+        """Stop producers, then consumers (idempotent)."""
+        if self._state in ("stopped", "new"):
+            self._state = "stopped"
+            return
+        self._state = "stopped"
+        if self.acquisition is not None:
+            self.acquisition.stop()
+        if self.writer is not None:
+            self.writer.stop()
+        if self.opcua is not None:
+            self.opcua.stop()
+        if self.audit is not None:
+            self.audit.event(self.clock.now(), "stop", "gateway", "stopped")
+            self.audit.close()
+        if self.store is not None:
+            self.store.close()
+
+    def __enter__(self) -> LiveGateway:
+        return self.start() if self._state == "new" else self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def run_stepped(self, until_s: float) -> None:
+        """ManualClock only: sample up to ``until_s`` in steps of the heartbeat period, servicing the writer."""
+        if not self.stepped or self.acquisition is None or self.writer is None:
+            raise RuntimeError("run_stepped needs a started gateway on a ManualClock")
+        step = self.profile.compensation.heartbeat_period_s
+        t = self.clock.now()
+        while t < until_s - 1e-9:
+            t = min(until_s, t + step)
+            self.acquisition.run_stepped(t)
+            self.writer.service()
+
+    # -- per window ---------------------------------------------------------------------------------------
+    def _on_record(self, record: WindowRecord) -> None:
+        assert self.estimator is not None
+        assert self.writer is not None
+        t0 = time.perf_counter()
+        update = self.estimator.update(record)
+        self.update_s.append(time.perf_counter() - t0)
+        self.writer.submit(update, since_wall=t0)
+        if self.stepped:
+            self.writer.service()
+        with self._lock:
+            self.windows_live += 1
+            self.last_record = record
+        if update.filled and not (update.first_live and update.filled == 1):
+            gap = self.estimator.history.gaps[-1]
+            if self.audit is not None:
+                self.audit.event(self.clock.now(), "gap", "estimator", gap.describe(self.profile.sampling.window_s))
+        self._log_window(record, update)
+        self._publish_health(record, update)
+        for listener in self.listeners:
+            listener(record, update)
+
+    def _log_window(self, record: WindowRecord, update: EstimateUpdate) -> None:
+        assert self.writer is not None
+        est = " ".join(f"{a}={v:+.2f}" for a, v in update.estimate_um.items())
+        off = " ".join(f"{a}={v:+.2f}" for a, v in self.writer.commanded_um.items())
+        alarms = [a.name for a in self.alarms.active()] if self.alarms else []
+        log.info("window %d %s: estimate %s um; offsets %s um%s", record.index, record.status, est, off,
+                 f"; alarms {','.join(alarms)}" if alarms else "",
+                 extra={"event": "window", "window": record.index, "status": record.status,
+                        "estimate_um": dict(update.estimate_um), "offsets_um": dict(self.writer.commanded_um),
+                        "usable": update.usable, "missed_ticks": record.missed_ticks,
+                        "samples": record.samples_taken, "alarms": alarms})
+
+    def _publish_health(self, record: WindowRecord | None = None, update: EstimateUpdate | None = None) -> None:
+        if self.opcua is not None and self._state in ("running", "starting"):
+            self.opcua.publish(self.health())
+
+    # -- health -------------------------------------------------------------------------------------------
+    def health(self) -> dict[str, Any]:
+        """A snapshot: sampling, the last window, the estimate, compensation, gaps, alarms."""
+        with self._lock:
+            rec = self.last_record
+            windows = self.windows_live
+        est = self.estimator.last if self.estimator is not None else None
+        devices = self.acquisition.status() if self.acquisition is not None else []
+        wall = time.monotonic() - self.started_wall if self.started_wall is not None else 0.0
+        for d in devices:
+            d["rate_hz"] = d["reads_ok"] / wall if wall > 0 and not self.stepped else math.nan
+        hist = self.estimator.history if self.estimator is not None else None
+        return {
+            "machine": self.profile.name,
+            "clock_s": self.clock.now(),
+            "uptime_s": wall,
+            "windows_live": windows,
+            "rebuilt_windows": self.estimator.rebuilt_windows if self.estimator is not None else 0,
+            "devices": devices,
+            "last_window": None if rec is None else {
+                "index": rec.index, "end_s": rec.end_s, "status": rec.status, "coverage": rec.coverage,
+                "samples_taken": rec.samples_taken, "samples_expected": rec.samples_expected,
+                "missed_ticks": rec.missed_ticks, "devices_in_error": list(rec.devices_in_error)},
+            "factors": {} if rec is None else dict(rec.factors),
+            "estimate": None if est is None else {"window": est.index, "end_s": est.end_s,
+                                                   "estimate_um": dict(est.estimate_um), "usable": est.usable,
+                                                   "reason": est.reason},
+            "compensation": self.writer.status() if self.writer is not None else None,
+            "gaps": {"filled_windows": hist.filled_total if hist else 0, "policy": self.profile.live.gap_policy,
+                     "last": hist.gaps[-1].describe(self.profile.sampling.window_s) if hist and hist.gaps else ""},
+            "alarms": [{"name": a.name, "message": a.message, "since_s": a.since_s}
+                       for a in (self.alarms.active() if self.alarms else [])],
+        }

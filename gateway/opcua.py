@@ -1,0 +1,263 @@
+"""The gateway's OPC UA server (asyncua): factors, estimates, compensation and health, read-only by default.
+
+Bound to 127.0.0.1 unless ``[opcua] host`` says otherwise; security policies from ``[opcua] security``
+(``"None"`` alone by default; signed or encrypted policies need ``certificate`` and ``private_key``).
+Every variable is read-only, except, when ``[opcua] writable = true``, ``Compensation.HoldRequest``: an
+operator (or a cell controller) can ask the writer to hold the offsets, which is always safe.
+
+Address space (namespace ``urn:cncgw``, string node ids, so a client can read ``ns=2;s=Estimate.z_um``):
+
+- ``Machine.Name``; ``Factors.<factor>`` (last window's factor, its unit in the description);
+- ``Estimate.<axis>_um``, ``Estimate.Window``, ``Estimate.Usable``, ``Estimate.Reason``;
+- ``Compensation.Mode`` (``write``/``dry-run``), ``Compensation.Commanded.<axis>_um``,
+  ``Compensation.Applied.<axis>_um`` (last read-back), ``Compensation.LastWriteTimeS``,
+  ``Compensation.Verified``, ``Compensation.Writes``, ``Compensation.HoldRequest``;
+- ``Health.Alarms`` (one string per active alarm), ``Health.AlarmCount``, ``Health.Devices`` (``name:
+  state``), ``Health.SampleRateHz`` (lowest device), ``Health.MissedTicks`` (last window),
+  ``Health.GapWindows`` (windows filled by the gap policy), ``Health.UptimeS``.
+
+The server runs its own asyncio loop in a thread; :meth:`OpcUaServer.publish` (any thread) hands it a
+health snapshot, applied by a publisher task. Both tasks run in one ``TaskGroup``; every wait has a timeout.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import threading
+from collections.abc import Callable
+from typing import Any
+
+from gateway.errors import GatewayError
+from gateway.live.settings import OpcUa
+from gateway.model import ThermalModel
+from gateway.profile import Profile
+
+log = logging.getLogger(__name__)
+
+NAMESPACE = "urn:cncgw"
+START_TIMEOUT_S = 30.0
+STOP_TIMEOUT_S = 10.0
+
+
+class OpcUaServer:
+    """See the module docstring. ``start()`` returns once the server listens; ``stop()`` is idempotent."""
+
+    def __init__(self, settings: OpcUa, *, profile: Profile, model: ThermalModel,
+                 on_hold: Callable[[bool], None] | None = None) -> None:
+        self.settings = settings
+        self.profile = profile
+        self.model = model
+        self.on_hold = on_hold
+        self.port: int | None = None
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._queue: asyncio.Queue[dict[str, Any] | None] | None = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._nodes: dict[str, Any] = {}
+        self._types: dict[str, Any] = {}
+        self.published = 0
+
+    @property
+    def endpoint(self) -> str:
+        return f"opc.tcp://{self.settings.host}:{self.port}/cncgw/"
+
+    def start(self) -> OpcUaServer:
+        self._thread = threading.Thread(target=self._thread_main, name="cncgw-opcua", daemon=True)
+        self._thread.start()
+        if not self._ready.wait(START_TIMEOUT_S):
+            raise GatewayError(f"OPC UA server did not start within {START_TIMEOUT_S:g} s")
+        if self._error is not None:
+            self._thread.join()
+            self._thread = None
+            raise GatewayError(f"OPC UA server on {self.settings.host}:{self.settings.port} failed to start: "
+                               f"{self._error}") from self._error
+        return self
+
+    def publish(self, health: dict[str, Any]) -> None:
+        """Hand over a health snapshot (thread-safe, cheap; only the newest matters)."""
+        loop, queue = self._loop, self._queue
+        if loop is None or queue is None or loop.is_closed():
+            return
+        with contextlib.suppress(RuntimeError):  # the loop closed in between: the server is stopping
+            loop.call_soon_threadsafe(queue.put_nowait, health)
+
+    def stop(self) -> None:
+        loop, queue = self._loop, self._queue
+        if loop is not None and queue is not None and not loop.is_closed():
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(queue.put_nowait, None)
+        if self._thread is not None:
+            self._thread.join(STOP_TIMEOUT_S + 5.0)
+            self._thread = None
+
+    # -- the server's thread ------------------------------------------------------------------------------
+    def _thread_main(self) -> None:
+        try:
+            asyncio.run(self._main())
+        except BaseException as exc:  # reported to start() or logged; the gateway goes on without OPC UA
+            if not self._ready.is_set():
+                self._error = exc
+            else:
+                log.exception("OPC UA server stopped with an error")
+        finally:
+            self._ready.set()
+
+    async def _main(self) -> None:
+        from asyncua import Server
+
+        self._loop = asyncio.get_running_loop()
+        self._queue = asyncio.Queue()
+        server = Server()
+        async with asyncio.timeout(START_TIMEOUT_S):
+            await server.init()
+            server.set_endpoint(f"opc.tcp://{self.settings.host}:{self.settings.port}/cncgw/")
+            server.set_server_name(f"cncgw {self.profile.name}")
+            await self._security(server)
+            idx = await server.register_namespace(NAMESPACE)
+            await self._build(server, idx)
+            await server.start()
+        try:
+            assert server.bserver is not None
+            self.port = server.bserver.port
+            log.info("OPC UA server listening on %s", self.endpoint)
+            self._ready.set()
+            async with asyncio.TaskGroup() as tg:
+                tg.create_task(self._publisher(), name="opcua-publisher")
+        finally:
+            async with asyncio.timeout(STOP_TIMEOUT_S):
+                await server.stop()
+
+    async def _security(self, server: Any) -> None:
+        from asyncua import ua
+
+        s = self.settings
+        policies = [getattr(ua.SecurityPolicyType, "NoSecurity" if p == "None" else p) for p in s.security]
+        server.set_security_policy(policies)
+        # anonymous reading; user certificates only where a signing policy can verify them
+        tokens = [ua.AnonymousIdentityToken] + ([ua.X509IdentityToken] if len(policies) > 1 or
+                                                policies[0] != ua.SecurityPolicyType.NoSecurity else [])
+        server.set_identity_tokens(tokens)
+        if s.certificate is not None and s.private_key is not None:
+            await server.load_certificate(str(s.certificate))
+            await server.load_private_key(str(s.private_key))
+
+    async def _build(self, server: Any, idx: int) -> None:
+        from asyncua import ua
+
+        root = await server.nodes.objects.add_object(ua.NodeId("cncgw", idx), ua.QualifiedName("cncgw", idx))
+
+        async def var(folder: Any, key: str, value: Any, vtype: Any, description: str = "") -> None:
+            node = await folder.add_variable(ua.NodeId(key, idx), ua.QualifiedName(key.split(".")[-1], idx),
+                                             ua.Variant(value, vtype))
+            if description:
+                await node.write_attribute(ua.AttributeIds.Description,
+                                           ua.DataValue(ua.Variant(ua.LocalizedText(description))))
+            self._nodes[key] = node
+            self._types[key] = vtype
+
+        async def folder(parent: Any, key: str) -> Any:
+            return await parent.add_object(ua.NodeId(key, idx), ua.QualifiedName(key.split(".")[-1], idx))
+
+        D, S, B, I64 = ua.VariantType.Double, ua.VariantType.String, ua.VariantType.Boolean, ua.VariantType.Int64
+        machine = await folder(root, "Machine")
+        await var(machine, "Machine.Name", self.profile.name, S)
+        factors = await folder(root, "Factors")
+        for f in self.profile.factors:
+            await var(factors, f"Factors.{f.name}", math.nan, D, f"{f.description} [{f.unit}]".strip())
+        est = await folder(root, "Estimate")
+        for a in self.model.axes:
+            await var(est, f"Estimate.{a}_um", 0.0, D, f"estimated thermal displacement along {a} [um]")
+        await var(est, "Estimate.Window", -1, I64)
+        await var(est, "Estimate.Usable", False, B)
+        await var(est, "Estimate.Reason", "", S)
+        comp = await folder(root, "Compensation")
+        await var(comp, "Compensation.Mode", "write" if self.profile.compensation.enabled else "dry-run", S)
+        commanded = await folder(comp, "Compensation.Commanded")
+        applied = await folder(comp, "Compensation.Applied")
+        for a in self.profile.compensation.axes:
+            await var(commanded, f"Compensation.Commanded.{a.axis}_um", 0.0, D)
+            await var(applied, f"Compensation.Applied.{a.axis}_um", math.nan, D)
+        await var(comp, "Compensation.LastWriteTimeS", math.nan, D)
+        await var(comp, "Compensation.Verified", False, B)
+        await var(comp, "Compensation.Writes", 0, I64)
+        await var(comp, "Compensation.HoldRequest", False, B, "true: hold the offsets (writable only if configured)")
+        if self.settings.writable and self.on_hold is not None:
+            await self._nodes["Compensation.HoldRequest"].set_writable()
+        health = await folder(root, "Health")
+        await var(health, "Health.Alarms", [], S)
+        await var(health, "Health.AlarmCount", 0, I64)
+        await var(health, "Health.Devices", [], S)
+        await var(health, "Health.SampleRateHz", math.nan, D)
+        await var(health, "Health.MissedTicks", 0, I64)
+        await var(health, "Health.GapWindows", 0, I64)
+        await var(health, "Health.UptimeS", 0.0, D)
+
+    async def _publisher(self) -> None:
+        assert self._queue is not None
+        hold = False
+        while True:
+            try:
+                async with asyncio.timeout(1.0):
+                    item = await self._queue.get()
+            except TimeoutError:
+                item = ...
+            items = [item]
+            while not self._queue.empty():  # only the newest snapshot matters
+                items.append(self._queue.get_nowait())
+            if None in items:
+                return
+            item = items[-1]
+            if item is not ...:
+                await self._apply(item)
+                self.published += 1
+            if self.on_hold is not None and self.settings.writable:
+                value = bool(await self._nodes["Compensation.HoldRequest"].read_value())
+                if value != hold:
+                    hold = value
+                    log.warning("OPC UA: hold request %s", "ON" if hold else "off")
+                    self.on_hold(hold)
+
+    async def _apply(self, h: dict[str, Any]) -> None:
+        values: dict[str, Any] = {}
+        for name, v in h.get("factors", {}).items():
+            values[f"Factors.{name}"] = float(v)
+        est = h.get("estimate")
+        if est:
+            for a, v in est["estimate_um"].items():
+                values[f"Estimate.{a}_um"] = float(v)
+            values["Estimate.Window"] = int(est["window"])
+            values["Estimate.Usable"] = bool(est["usable"])
+            values["Estimate.Reason"] = str(est["reason"])
+        comp = h.get("compensation")
+        if comp:
+            for a, v in comp["commanded_um"].items():
+                values[f"Compensation.Commanded.{a}_um"] = float(v)
+            lw = comp.get("last_write")
+            if lw:
+                for a, v in lw["applied_um"].items():
+                    values[f"Compensation.Applied.{a}_um"] = float(v)
+                values["Compensation.LastWriteTimeS"] = float(lw["t_s"])
+                values["Compensation.Verified"] = bool(lw["verified"])
+            values["Compensation.Writes"] = int(comp["writes"])
+        alarms = [f"{a['name']}: {a['message']}" for a in h.get("alarms", [])]
+        values["Health.Alarms"] = alarms
+        values["Health.AlarmCount"] = len(alarms)
+        devices = h.get("devices", [])
+        values["Health.Devices"] = [f"{d['device']}: {d['state']}" for d in devices]
+        rates = [d.get("rate_hz", math.nan) for d in devices]
+        values["Health.SampleRateHz"] = float(min(rates)) if rates else math.nan
+        lw_ = h.get("last_window")
+        if lw_:
+            values["Health.MissedTicks"] = int(lw_["missed_ticks"])
+        values["Health.GapWindows"] = int(h.get("gaps", {}).get("filled_windows", 0))
+        values["Health.UptimeS"] = float(h.get("uptime_s", 0.0))
+        from asyncua import ua
+
+        for key, v in values.items():
+            node = self._nodes.get(key)
+            if node is not None:
+                await node.write_value(ua.Variant(v, self._types[key]))

@@ -1,0 +1,243 @@
+"""The durable per-window store: SQLite in WAL mode, append-only, one transaction per window.
+
+Why SQLite: it needs no server, a committed transaction survives ``kill -9`` (and, with
+``synchronous=FULL``, a power cut), and a crash in the middle of a write leaves the previous state, never
+an unreadable file. One row is written a window, so the fsync costs nothing that matters. Rows are only
+ever inserted; a window index at or below the last one is refused, so nothing recorded is overwritten.
+
+Each row holds the window's summary columns (time, status, coverage, samples, missed ticks, largest gap,
+devices in error) for queries, and the whole :class:`~gateway.windows.WindowRecord` as JSON (per channel
+statistics, factors, per device quality, displacement bursts, notes); :meth:`RecordStore.windows` gives
+the records back.
+
+:func:`export_recording` writes the recording CSV that ``cncgw identify``, ``estimate`` and ``diagnose``
+read: one row per stored window stamped at its end, factor columns as the profile names them (left empty
+for an ``insufficient`` window: too little data is a gap, not a value), displacement columns when bursts
+were recorded, and the quality as extra ``q_*`` columns.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sqlite3
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from gateway.errors import RecordingError
+from gateway.profile import Profile
+from gateway.recording import write_recording
+from gateway.windows import ChannelStats, DeviceQuality, WindowRecord
+
+FORMAT = 1
+STORE_NAME = "records.sqlite"
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS windows (
+    idx INTEGER PRIMARY KEY,
+    start_s REAL NOT NULL,
+    end_s REAL NOT NULL,
+    status TEXT NOT NULL,
+    coverage REAL NOT NULL,
+    samples_expected INTEGER NOT NULL,
+    samples_taken INTEGER NOT NULL,
+    missed_ticks INTEGER NOT NULL,
+    largest_gap_s REAL NOT NULL,
+    devices_in_error TEXT NOT NULL,
+    written_s REAL NOT NULL,
+    body TEXT NOT NULL
+);
+"""
+
+
+def _clean(x: Any) -> Any:
+    """JSON without NaN or inf (strict JSON; ``None`` stands for a missing number)."""
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    if isinstance(x, dict | MappingProxyType):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_clean(v) for v in x]
+    return x
+
+
+def _num(x: Any) -> float:
+    return math.nan if x is None else float(x)
+
+
+def record_to_json(record: WindowRecord) -> str:
+    """The record as strict JSON."""
+    body = {
+        "factors": dict(record.factors),
+        "channels": {n: {f: getattr(c, f) for f in ChannelStats.__slots__} for n, c in record.channels.items()},
+        "devices": {n: {f: getattr(d, f) for f in DeviceQuality.__slots__} for n, d in record.devices.items()},
+        "displacement": dict(record.displacement),
+        "burst_revolutions": dict(record.burst_revolutions),
+        "notes": list(record.notes),
+    }
+    return json.dumps(_clean(body), separators=(",", ":"), allow_nan=False)
+
+
+def record_from_row(idx: int, start_s: float, end_s: float, status: str, body: str) -> WindowRecord:
+    """A stored row back as a :class:`WindowRecord`."""
+    b = json.loads(body)
+    floats = {"coverage", "mean", "mean_square", "mean_abs", "min", "max"}
+    channels = {n: ChannelStats(**{k: (_num(v) if k in floats else v) for k, v in c.items()})
+                for n, c in b["channels"].items()}
+    devices = {}
+    for n, d in b["devices"].items():
+        d = dict(d)
+        for k in ("largest_gap_s", "lateness_max_s", "read_time_max_s", "tick_s"):
+            d[k] = _num(d[k])
+        d["errors"] = tuple(d["errors"])
+        devices[n] = DeviceQuality(**d)
+    return WindowRecord(
+        index=idx, start_s=start_s, end_s=end_s, status=status,
+        factors=MappingProxyType({k: _num(v) for k, v in b["factors"].items()}),
+        channels=MappingProxyType(channels), devices=MappingProxyType(devices),
+        displacement=MappingProxyType({k: _num(v) for k, v in b["displacement"].items()}),
+        burst_revolutions=MappingProxyType({k: _num(v) for k, v in b["burst_revolutions"].items()}),
+        notes=tuple(b["notes"]))
+
+
+class RecordStore:
+    """An append-only store of window records in one SQLite file; see the module docstring.
+
+    ``RecordStore(path, profile=P)`` creates the file if needed (recording ``P``'s machine, window and
+    factors in it) or opens it, refusing a store of another machine or window length;
+    ``RecordStore(path)`` opens an existing store to read. Thread-safe; use as a context manager.
+    """
+
+    def __init__(self, path: str | Path, *, profile: Profile | None = None) -> None:
+        self.path = Path(path)
+        if profile is None and not self.path.exists():
+            raise RecordingError(f"{self.path}: no record store here")
+        self._lock = threading.Lock()
+        try:
+            self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=FULL")  # WAL + FULL: a committed window survives a power cut
+            self._db.executescript(_SCHEMA)
+            self.meta = dict(self._db.execute("SELECT key, value FROM meta").fetchall())
+        except sqlite3.DatabaseError as exc:
+            raise RecordingError(f"{self.path}: not a readable record store: {exc}") from None
+        if profile is not None:
+            self._claim(profile)
+        elif self.meta.get("format") != str(FORMAT):
+            raise RecordingError(f"{self.path}: not a cncgw record store (format {self.meta.get('format')!r})")
+        row = self._db.execute("SELECT MAX(idx) FROM windows").fetchone()
+        self.last_index: int | None = row[0]
+
+    def _claim(self, profile: Profile) -> None:
+        want = {"format": str(FORMAT), "machine": profile.name, "window_s": repr(profile.sampling.window_s)}
+        if not self.meta:
+            factors = {f.name: {"channel": f.channel, "stat": f.stat.value, "unit": f.unit, "column": f.column}
+                       for f in profile.factors}
+            rows = {**want, "profile": str(profile.path), "created_s": repr(time.time()),
+                    "factors": json.dumps(factors)}
+            with self._lock:
+                self._db.execute("BEGIN IMMEDIATE")
+                self._db.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", rows.items())
+                self._db.execute("COMMIT")
+            self.meta = rows
+            return
+        for key, value in want.items():
+            if self.meta.get(key) != value:
+                raise RecordingError(f"{self.path}: this store holds {key} {self.meta.get(key)!r}, the profile "
+                                     f"{profile.path} says {value!r}: record into another directory")
+
+    def append(self, record: WindowRecord) -> None:
+        """Write one window durably (committed and synced when this returns)."""
+        with self._lock:
+            if self.last_index is not None and record.index <= self.last_index:
+                raise RecordingError(f"{self.path}: window {record.index} is not after the last one stored "
+                                     f"({self.last_index}); records are append-only")
+            body = record_to_json(record)
+            self._db.execute(
+                "INSERT INTO windows (idx, start_s, end_s, status, coverage, samples_expected, samples_taken, "
+                "missed_ticks, largest_gap_s, devices_in_error, written_s, body) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (record.index, record.start_s, record.end_s, record.status, record.coverage,
+                 record.samples_expected, record.samples_taken, record.missed_ticks, record.largest_gap_s,
+                 ",".join(record.devices_in_error), time.time(), body))
+            self.last_index = record.index
+
+    def __call__(self, record: WindowRecord) -> None:
+        """A store is a sink: ``Acquisition(..., sinks=[store])``."""
+        self.append(record)
+
+    def __len__(self) -> int:
+        with self._lock:
+            return int(self._db.execute("SELECT COUNT(*) FROM windows").fetchone()[0])
+
+    def windows(self, *, since: int | None = None) -> Iterator[WindowRecord]:
+        """The stored records in window order (from index ``since`` on)."""
+        with self._lock:
+            rows = self._db.execute("SELECT idx, start_s, end_s, status, body FROM windows WHERE idx >= ? "
+                                    "ORDER BY idx", (since if since is not None else -(2**62),)).fetchall()
+        for row in rows:
+            yield record_from_row(*row)
+
+    def check(self) -> str:
+        """SQLite's integrity check: ``"ok"`` for a sound file."""
+        with self._lock:
+            return str(self._db.execute("PRAGMA integrity_check").fetchone()[0])
+
+    def close(self) -> None:
+        """Close the file (idempotent)."""
+        with self._lock:
+            if self._db is not None:
+                self._db.close()
+                self._db = None  # type: ignore[assignment]
+
+    def __enter__(self) -> RecordStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+QUALITY_COLUMNS = ("q_good", "q_coverage", "q_samples_expected", "q_samples_taken", "q_missed_ticks",
+                   "q_largest_gap_s", "q_devices_in_error")
+
+
+def export_recording(store: RecordStore, profile: Profile, out: str | Path) -> Path:
+    """Write the store's windows as a recording CSV for ``profile`` (see the module docstring)."""
+    window_s = float(store.meta.get("window_s", "nan"))
+    if profile.recording.period_s != window_s:
+        raise RecordingError(f"{profile.path}: recording.period_s ({profile.recording.period_s:g} s) differs from the "
+                             f"recorded window ({window_s:g} s): set recording.period_s = {window_s:g}")
+    records = list(store.windows())
+    if not records:
+        raise RecordingError(f"{store.path}: no windows recorded yet: nothing to export")
+    stored = json.loads(store.meta.get("factors", "{}"))
+    missing = [f.name for f in profile.factors if f.name not in stored]
+    if missing:
+        raise RecordingError(f"{store.path}: the store has no factor {', '.join(missing)} of profile {profile.path}")
+    n = len(records)
+    cols: dict[str, np.ndarray] = {}
+    for f in profile.factors:
+        cols[f.column] = np.array([r.factors.get(f.name, math.nan) if r.status == "good" else math.nan
+                                   for r in records])
+    if any(r.displacement for r in records):
+        for axis, column in profile.recording.displacement_columns.items():
+            cols[column] = np.array([r.displacement.get(axis, math.nan) for r in records])
+    cols["q_good"] = np.array([1.0 if r.status == "good" else 0.0 for r in records])
+    cols["q_coverage"] = np.array([r.coverage for r in records])
+    cols["q_samples_expected"] = np.array([float(r.samples_expected) for r in records])
+    cols["q_samples_taken"] = np.array([float(r.samples_taken) for r in records])
+    cols["q_missed_ticks"] = np.array([float(r.missed_ticks) for r in records])
+    cols["q_largest_gap_s"] = np.array([r.largest_gap_s for r in records])
+    cols["q_devices_in_error"] = np.array([float(len(r.devices_in_error)) for r in records])
+    bad = sum(1 for r in records if r.status != "good")
+    meta = {"machine": store.meta.get("machine", ""), "records": str(store.path), "windows": str(n),
+            "insufficient_windows": f"{bad} (factors left empty)"}
+    return write_recording(out, time_s=np.array([r.end_s for r in records]), columns=cols, meta=meta,
+                           time_column=profile.recording.time_column)

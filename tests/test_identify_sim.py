@@ -1,0 +1,67 @@
+"""Identification against the simulated machine: a physical 15-node network, not the model's own kind."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from tests_paths import PROFILES
+
+from gateway.estimate import estimate
+from gateway.identify import identify
+from gateway.profile import load_profile
+from simulators.machine import load_scenario, simulate
+
+IDENTIFICATION = ("spindle-1000rpm", "spindle-500rpm", "spindle-400-600rpm", "feed-x-fast", "feed-x-accel",
+                  "feed-y-fast", "feed-y-accel", "feed-z-fast", "feed-z-accel")
+
+
+@pytest.fixture(scope="module")
+def identified():
+    profile = load_profile(PROFILES / "sim-vmc.toml")
+    train = [simulate(load_scenario(n)).recording() for n in IDENTIFICATION]
+    return profile, identify(train, factors=profile.factor_names, axes=profile.axes,
+                             units={f.name: f.unit for f in profile.factors})
+
+
+@pytest.mark.parametrize("run", ["random-spindle", "spindle-feeds"])
+def test_held_out_run_of_the_papers_kind_within_10_percent_of_peak(identified, run):
+    """The paper reached about 28 % of peak; the aim for a truly linear plant is 10 %. The simulated machine
+    is linear in its heat inputs, so its noiseless displacement is the reference; on axes whose peak is
+    below 1 um the bound is the 0.1 um sensor noise instead."""
+    _, result = identified
+    sim = simulate(load_scenario(run))
+    est = estimate(result.model, sim.recording("true"))
+    for axis, m in est.metrics.items():
+        assert m.max_abs_error_um <= max(0.10 * m.peak_um, 0.1), (run, axis, m)
+    assert est.metrics["z"].peak_um > 10.0
+    assert est.metrics["z"].max_error_pct_of_peak < 5.0
+
+
+def test_measured_recording_and_truth_differ_by_the_sensor_noise_only():
+    sim = simulate(load_scenario("random-spindle"))
+    measured, true = sim.recording(), sim.recording("true")
+    noise = measured.displacement["z"] - true.displacement["z"]
+    assert 0.05 < np.std(noise) < 0.2  # the scenario's 0.1 um sensors
+    np.testing.assert_array_equal(measured.factors["spindle_speed"], true.factors["spindle_speed"])
+    assert measured.meta["scenario"] == "random-spindle"
+    with pytest.raises(ValueError, match="which must be"):
+        sim.recording("noisy")
+
+
+def test_identification_reports_structure_and_reference_state(identified):
+    profile, result = identified
+    assert [s.axis for s in result.selections] == list(profile.axes)
+    # the Z motor holds the head against gravity: its idle current squared is the reference, not zero
+    assert result.model.reference["z_i_sq"] > 5.0
+    assert result.model.reference["spindle_speed"] == 0.0
+    assert all(s.chosen.rms < 0.3 for s in result.selections)
+
+
+def test_estimate_warns_where_the_model_extrapolates(identified):
+    """The production day runs the spindle at up to 3000 rpm; identification went to 1000 rpm."""
+    _, result = identified
+    day = estimate(result.model, simulate(load_scenario("production-day")).recording())
+    assert ("factor spindle_speed reaches 3000 rpm above its reference, 3.0x the largest in the identification "
+            "experiments (1000 rpm): the model extrapolates there") in day.notes
+    paper_kind = estimate(result.model, simulate(load_scenario("spindle-feeds")).recording())
+    assert not [n for n in paper_kind.notes if "extrapolates" in n]

@@ -1,0 +1,70 @@
+"""Displacement bursts for identification runs: read at the end of each window and averaged over a whole
+number of spindle revolutions, which cancels runout (the paper's method); recorded and exported with the
+factors."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from test_drivers_support import RunoutSource, live_profile
+
+from gateway.clock import ManualClock
+from gateway.recording import read_for_profile
+from gateway.records import RecordStore, export_recording
+from gateway.sampler import Acquisition
+from gateway.windows import revolution_average
+from simulators.devices import DeviceSetConfig, serve
+from simulators.devices.analog import DEFAULT_ADC_CONFIG
+from simulators.devices.profile_out import adc_with_displacement
+from simulators.machine import LiveMachine
+
+START = 31 * 60.0  # spindle-1000rpm: one minute into the 1000 rpm run
+
+
+def test_bursts_average_whole_revolutions_and_cancel_runout(tmp_path):
+    clock = ManualClock(START)
+    machine = LiveMachine("spindle-1000rpm", clock=clock)
+    source = RunoutSource(machine, amplitude_um=20.0)  # exaggerated: 20 um once per revolution
+    config = DeviceSetConfig(adc=adc_with_displacement(DEFAULT_ADC_CONFIG), adc_rtu=None, can=None, dcon=None,
+                             cnc=None)
+    with serve(source, clock, config) as devices:
+        profile = live_profile(devices, tmp_path, displacement=True, sampling={"window_s": 5.0, "burst_s": 2.9})
+        profile.path.write_text(profile.path.read_text().replace("period_s = 60.0", "period_s = 5.0"))
+        from gateway.profile import load_profile
+
+        profile = load_profile(profile.path)
+        store = RecordStore(tmp_path / "records.sqlite", profile=profile)
+        records = []
+        acq = Acquisition(profile, clock=clock, sinks=[store, records.append])
+        try:
+            acq.run_stepped(START + 10.0)
+        finally:
+            acq.stop()
+    assert [r.index for r in records] == [372, 373]
+    for r in records:
+        # 1000 rpm: a revolution is 60 ms; 2.9 s of burst hold 48 whole ones (2.88 s, 1440 samples)
+        assert dict(r.burst_revolutions) == {"x": 48.0, "y": 48.0, "z": 48.0}
+        ticks = [round(r.end_s - k * 0.002, 9) for k in range(1440)]
+        plain_errors = []
+        for axis in "xyz":
+            truth = sum(machine.values(t)[f"{axis}_um"] for t in ticks) / len(ticks)  # without runout
+            plain = [source.values(round(r.end_s - k * 0.002, 9))[f"{axis}_um"] for k in range(1450)]
+            plain_errors.append(abs(sum(plain) / len(plain) - truth))
+            assert r.displacement[axis] == pytest.approx(truth, abs=1e-5), axis
+        # the plain mean of the 2.9 s keeps a part of the runout (how much depends on its phase)
+        assert max(plain_errors) > 0.02
+    out = export_recording(store, profile, tmp_path / "burst.csv")
+    store.close()
+    rec = read_for_profile(out, profile)  # displacement columns are required by identify
+    assert list(rec.displacement["z"]) == [r.displacement["z"] for r in records]
+
+
+def test_revolution_average_without_speed_or_at_rest_is_the_plain_mean():
+    samples = [(k * 0.01, float(k)) for k in range(1, 11)]
+    assert revolution_average(samples, None) == (5.5, 0.0)
+    assert revolution_average(samples, 0.0) == (5.5, 0.0)
+    assert revolution_average(samples, 100.0) == (5.5, 0.0)  # 0.1 s at 100 rpm: less than one revolution
+    # 0.1 s at 1500 rpm (40 ms a revolution): two whole revolutions, the last 8 samples
+    assert revolution_average(samples, 1500.0) == (6.5, 2.0)
+    assert math.isnan(revolution_average([], 1000.0)[0])
