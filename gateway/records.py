@@ -13,7 +13,8 @@ the records back.
 :func:`export_recording` writes the recording CSV that ``cncgw identify``, ``estimate`` and ``diagnose``
 read: one row per stored window stamped at its end, factor columns as the profile names them (left empty
 for an ``insufficient`` window: too little data is a gap, not a value), displacement columns when bursts
-were recorded, and the quality as extra ``q_*`` columns.
+were recorded, every other channel's window mean under the channel's name (e.g. a room thermometer, for
+``diagnose``), and the quality as extra ``q_*`` columns.
 """
 
 from __future__ import annotations
@@ -185,6 +186,13 @@ class RecordStore:
         for row in rows:
             yield record_from_row(*row)
 
+    def first(self) -> WindowRecord | None:
+        """The oldest stored record (``None`` in an empty store)."""
+        with self._lock:
+            row = self._db.execute("SELECT idx, start_s, end_s, status, body FROM windows ORDER BY idx LIMIT 1"
+                                   ).fetchone()
+        return None if row is None else record_from_row(*row)
+
     def check(self) -> str:
         """SQLite's integrity check: ``"ok"`` for a sound file."""
         with self._lock:
@@ -208,6 +216,11 @@ QUALITY_COLUMNS = ("q_good", "q_coverage", "q_samples_expected", "q_samples_take
                    "q_largest_gap_s", "q_devices_in_error")
 
 
+def _channel_mean(record: WindowRecord, channel: str) -> float:
+    stats = record.channels.get(channel)
+    return float(stats.mean) if stats is not None and stats.count else math.nan
+
+
 def export_recording(store: RecordStore, profile: Profile, out: str | Path) -> Path:
     """Write the store's windows as a recording CSV for ``profile`` (see the module docstring)."""
     window_s = float(store.meta.get("window_s", "nan"))
@@ -229,6 +242,10 @@ def export_recording(store: RecordStore, profile: Profile, out: str | Path) -> P
     if any(r.displacement for r in records):
         for axis, column in profile.recording.displacement_columns.items():
             cols[column] = np.array([r.displacement.get(axis, math.nan) for r in records])
+    used = {f.channel for f in profile.factors} | set(profile.sampling.displacement_channels.values())
+    for c in profile.channels:  # other channels (a room thermometer): their means, for diagnosis
+        if c.name not in used and c.name not in cols:
+            cols[c.name] = np.array([_channel_mean(r, c.name) for r in records])
     cols["q_good"] = np.array([1.0 if r.status == "good" else 0.0 for r in records])
     cols["q_coverage"] = np.array([r.coverage for r in records])
     cols["q_samples_expected"] = np.array([float(r.samples_expected) for r in records])

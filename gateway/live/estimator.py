@@ -17,23 +17,31 @@ uninterrupted run would have had for the same records:
 - every filled window is counted and reported (:class:`Gap`, health, logs, the audit log), and an estimate
   that rests on a filled window is not used for compensation (the writer holds).
 
+Derived inputs (a diagnosed model's ``[inputs.NAME]``: speed squared, sums, flags, lags, a daily period, a
+recorded column) are stepped with :class:`~gateway.model.inputs.InputStepper` from the factors after the
+gap policy, the window's end time (epoch seconds, as in an exported recording) and, for a ``column``
+input, the mean of the profile channel of that name (held over windows without it). They start settled at
+the reference levels and at the channel's value in the oldest stored window (the equilibrium the
+machine starts in), so a restart replays them to the same values.
+
 Only history that can still matter is read on start: twenty times the model's slowest time constant
 (``[live] history_max_h`` overrides); older inputs have decayed to less than e^-20 of their effect.
 """
 
 from __future__ import annotations
 
-import copy
 import logging
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 
 import numpy as np
 
+from gateway.errors import ModelError
 from gateway.live.settings import Live
 from gateway.model import LiveEstimator, ThermalModel
+from gateway.model.inputs import Column, InputStepper, Product, initial_values
 from gateway.windows import WindowRecord
 
 log = logging.getLogger(__name__)
@@ -106,6 +114,9 @@ class FactorHistory:
         self.window_s = float(window_s)
         self.live = live
         self.reference = model.reference_vector()
+        self.columns = tuple(dict.fromkeys(d.column for d in model.inputs if isinstance(d, Column)))
+        self._stepper: InputStepper | None = None
+        self._start: np.ndarray | None = None  # the derived inputs' values in the initial equilibrium
         self.last_index: int | None = None
         self.last_good_du = np.zeros(len(model.factors))
         self.last_good_end_s: float | None = None
@@ -137,17 +148,19 @@ class FactorHistory:
         """
         if self.last_index is not None and record.index <= self.last_index:
             raise ValueError(f"window {record.index} is not after window {self.last_index}")
+        if self.model.inputs and self._stepper is None:
+            self.begin([record])
         cols = []
         filled = 0
         if self.last_index is not None and record.index > self.last_index + 1:
             first, last = self.last_index + 1, record.index - 1
             for j in range(first, last + 1):
-                cols.append(self._fill_column(j))
+                cols.append(self._with_inputs(self._fill_column(j), (j + 1) * self.window_s, None))
             filled += last - first + 1
             self._note_gap(first, last, "gateway down: no record")
         reason = bad_reason(record, self.model.factors, self.channels)
         if reason:
-            cols.append(self._fill_column(record.index))
+            cols.append(self._with_inputs(self._fill_column(record.index), record.end_s, record))
             filled += 1
             self._note_gap(record.index, record.index, "window without good factors")
         else:
@@ -155,16 +168,52 @@ class FactorHistory:
             du = u - self.reference
             self.last_good_du = du
             self.last_good_end_s = record.end_s
-            cols.append(du)
+            cols.append(self._with_inputs(du, record.end_s, record))
         self.last_index = record.index
         return np.column_stack(cols), filled, reason
+
+    def begin(self, records: Sequence[WindowRecord]) -> None:
+        """Settle the derived inputs in the initial equilibrium at the first of ``records``.
+
+        That is the reference levels, and each column input's channel at its first value in ``records`` (the
+        oldest stored window first); a channel never seen counts as settled (deviation 0) and is logged.
+        """
+        initial = {f: float(v) for f, v in zip(self.model.factors, self.reference, strict=True)}
+        for c in self.columns:
+            initial[c] = next((v for v in (self._column_value(r, c) for r in records) if math.isfinite(v)), math.nan)
+            if not math.isfinite(initial[c]):
+                log.warning("channel %s (a column input of the model) has no value in the first window: its "
+                            "deviation counts as 0", c)
+        time0 = records[0].end_s
+        self._stepper = InputStepper(self.model.inputs, dt_s=self.window_s, initial=initial, time0_s=time0)
+        start = initial_values(self.model.inputs, initial, time0_s=time0)
+        self._start = np.array([start[d.name] for d in self.model.inputs])
+
+    @staticmethod
+    def _column_value(record: WindowRecord | None, column: str) -> float:
+        stats = None if record is None else record.channels.get(column)
+        if stats is None or not stats.count or not math.isfinite(stats.mean):
+            return math.nan
+        return float(stats.mean)
+
+    def _with_inputs(self, du: np.ndarray, end_s: float, record: WindowRecord | None) -> np.ndarray:
+        """``du`` followed by the derived inputs' deviations for the window ending at ``end_s``."""
+        if self._stepper is None:
+            return du
+        assert self._start is not None
+        signals = {f: float(r + d) for f, r, d in zip(self.model.factors, self.reference, du, strict=True)}
+        values = self._stepper.step(signals, time_s=end_s,
+                                    columns={c: self._column_value(record, c) for c in self.columns})
+        derived = np.array([values[d.name] for d in self.model.inputs]) - self._start
+        return np.concatenate([du, np.nan_to_num(derived, nan=0.0)])
 
 
 def history_windows(model: ThermalModel, window_s: float, live: Live) -> int:
     """How many windows of stored history the rebuild reads (see the module docstring)."""
     if live.history_max_h is not None:
         return max(1, math.ceil(live.history_max_h * 3600.0 / window_s))
-    slowest = max((tau for p in model.paths.values() for t in p.terms for tau in t.time_constants_s),
+    lags = [tau for d in model.inputs if isinstance(d, Product) for tau in d.lag_s]
+    slowest = max([tau for p in model.paths.values() for t in p.terms for tau in t.time_constants_s] + lags,
                   default=window_s)
     delay = max((p.delay_s for p in model.paths.values()), default=0.0)
     return max(1, math.ceil((20.0 * slowest + delay) / window_s))
@@ -178,13 +227,23 @@ class Estimator:
         window_s: the profile's window.
         live: the gap policy.
         channels: factor -> channel (saturated samples on it make a window bad).
+        channel_names: every channel the profile reads; a derived ``column`` input needs one of its name
+            (``None``: not checked).
 
     :meth:`rebuild` recomputes the state from stored records before the first live window.
 
     """
 
     def __init__(self, model: ThermalModel, *, window_s: float, live: Live,
-                 channels: Mapping[str, str] | None = None) -> None:
+                 channels: Mapping[str, str] | None = None, channel_names: Iterable[str] | None = None) -> None:
+        if channel_names is not None:
+            have = set(channel_names)
+            missing = [d for d in model.inputs if isinstance(d, Column) and d.column not in have]
+            if missing:
+                raise ModelError("; ".join(
+                    f'model input "{d.name}" reads recorded column "{d.column}", but the profile has no channel '
+                    f'"{d.column}" (channels: {", ".join(sorted(have)) or "none"}): add a [channels.{d.column}] '
+                    f"table that reads it" for d in missing))
         self.model = model
         self.window_s = float(window_s)
         self.live = live
@@ -199,10 +258,17 @@ class Estimator:
     def axes(self) -> tuple[str, ...]:
         return self.model.axes
 
-    def rebuild(self, records: Iterable[WindowRecord]) -> int:
-        """Recompute the state from stored ``records`` (window order) in batch; returns windows replayed."""
+    def rebuild(self, records: Iterable[WindowRecord], *, origin: WindowRecord | None = None) -> int:
+        """Recompute the state from stored ``records`` (window order) in batch; returns windows replayed.
+
+        ``origin``: the oldest stored window, where derived column inputs start settled (default: the first
+        of ``records``).
+        """
         if self.history.last_index is not None:
             raise RuntimeError("rebuild() comes before the first live window")
+        records = list(records)
+        if self.model.inputs and records:
+            self.history.begin(([origin] if origin is not None else []) + records)
         cols = []
         last = None
         for r in records:
@@ -226,14 +292,8 @@ class Estimator:
         return MappingProxyType({a: float(v) for a, v in zip(self.model.axes, y, strict=True)})
 
     def _predict(self, du: np.ndarray) -> Mapping[str, float]:
-        """The estimate one window ahead if the factors stay at ``du`` (the state is not touched)."""
-        # only the state is copied: the discretised model and its sections are shared (read-only). This
-        # knows LiveEstimator keeps its sections in ``_flat``; a ``LiveEstimator.peek(du)`` would be cleaner.
-        est = self.estimator
-        shared = getattr(est, "_flat", None)
-        memo = {id(self.dm): self.dm} | ({id(shared): shared} if shared is not None else {})
-        ahead = copy.deepcopy(est, memo=memo)
-        return self._axes_map(ahead.step(du))
+        """The estimate one window ahead if the inputs stay at ``du`` (the state is not touched)."""
+        return self._axes_map(self.estimator.peek(du))
 
     def update(self, record: WindowRecord) -> EstimateUpdate:
         """Step through ``record`` (and any windows missing before it); return the new estimate."""

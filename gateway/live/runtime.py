@@ -116,11 +116,13 @@ class LiveGateway:
         self.audit.event(now, "start", "gateway", f"{p.name}: compensation {mode}")
 
         self.estimator = Estimator(self.model, window_s=p.sampling.window_s, live=p.live,
-                                   channels={f.name: f.channel for f in p.factors})
+                                   channels={f.name: f.channel for f in p.factors},
+                                   channel_names=[c.name for c in p.channels])
         if self.store.last_index is not None:
             since = self.store.last_index + 1 - history_windows(self.model, p.sampling.window_s, p.live)
             t0 = time.perf_counter()
-            n = self.estimator.rebuild(self.store.windows(since=since))
+            n = self.estimator.rebuild(self.store.windows(since=since),
+                                       origin=self.store.first() if self.model.inputs else None)
             gaps = self.estimator.history.gaps
             log.info("estimator rebuilt from %d stored windows (%d filled by gap policy %s) in %.2f s", n,
                      self.estimator.history.filled_total, p.live.gap_policy, time.perf_counter() - t0)

@@ -256,18 +256,33 @@ class LiveEstimator:
         A model with derived inputs needs their deviations too (factors first): compute them with
         :class:`gateway.model.inputs.InputStepper` from the window's factor values.
         """
-        du = np.asarray(du, dtype=float)
-        if du.shape != (self._hist.shape[1],) or not np.all(np.isfinite(du)):
-            raise ValueError(f"du: expected {self._hist.shape[1]} finite factor deviations, got {du!r}")
+        du, xs, y = self._next(du)
         self._hist = np.roll(self._hist, 1, axis=0)
         self._hist[0] = du
-        y = np.zeros(len(self.dm.model.axes))
-        for k, (i, j, gain, sec) in enumerate(self._flat):
-            x = sec.Ad @ self._x[k] + sec.B0 * self._hist[sec.m, j] + sec.B1 * self._hist[sec.m + 1, j]
-            self._x[k] = x
-            y[i] += gain * float(sec.C @ x)
+        self._x = xs
         self.steps += 1
         return y
+
+    def peek(self, du: Sequence[float] | np.ndarray) -> np.ndarray:
+        """The displacement :meth:`step` would return for ``du``, without advancing (the state is untouched)."""
+        return self._next(du)[2]
+
+    def _next(self, du: Sequence[float] | np.ndarray) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+        """The checked input, the states and the output one window on.
+
+        Row d of the shifted history is row d - 1 of the current one; its row 0 is ``du``.
+        """
+        du = np.asarray(du, dtype=float)
+        if du.shape != (self._hist.shape[1],) or not np.all(np.isfinite(du)):
+            raise ValueError(f"du: expected {self._hist.shape[1]} finite input deviations, got {du!r}")
+        xs = []
+        y = np.zeros(len(self.dm.model.axes))
+        for k, (i, j, gain, sec) in enumerate(self._flat):
+            now = du[j] if sec.m == 0 else self._hist[sec.m - 1, j]
+            x = sec.Ad @ self._x[k] + sec.B0 * now + sec.B1 * self._hist[sec.m, j]
+            xs.append(x)
+            y[i] += gain * float(sec.C @ x)
+        return du, xs, y
 
     @classmethod
     def from_history(cls, dm: DiscreteModel, du: np.ndarray) -> LiveEstimator:
