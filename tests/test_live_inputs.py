@@ -204,3 +204,19 @@ def test_peek_is_the_next_step_without_taking_it():
     assert np.array_equal(est.step(du), ahead)
     with pytest.raises(ValueError, match="expected 6 finite input deviations"):
         est.peek(np.full(6, np.nan))
+
+
+def test_cncgw_run_refuses_such_a_model_before_touching_the_data_directory(tmp_path, capsys):
+    from gateway.cli import main
+    from gateway.model import save_model
+
+    profile = tmp_path / "derived.toml"
+    profile.write_text(PROFILE.format(room=""), encoding="utf-8")
+    model = tmp_path / "diagnosed.model.toml"
+    save_model(diagnosed_model(), model)
+    code = main(["run", "--profile", str(profile), "--data", str(tmp_path / "data"), "--model", str(model)])
+    assert code == 5
+    assert capsys.readouterr().err.strip() == (
+        f'cncgw: error: {model}: model input "room" reads recorded column "room_c", but the profile has no channel '
+        '"room_c" (channels: current, speed): add a [channels.room_c] table that reads it')
+    assert not (tmp_path / "data").exists()

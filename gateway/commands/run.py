@@ -19,7 +19,7 @@ from typing import Any
 
 from gateway.clock import Clock, RealClock, ScaledClock
 from gateway.commands._common import load_model_for, positive_float
-from gateway.errors import GatewayError
+from gateway.errors import GatewayError, ModelError
 from gateway.profile import load_profile
 
 log = logging.getLogger("gateway.live")
@@ -92,6 +92,11 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.rt_priority <= 99:
         raise GatewayError(f"--rt-priority must be in 0..99. Got {args.rt_priority}")
     model, model_path = load_model_for(profile, args.model)
+    from gateway.live.estimator import column_channel_problems
+
+    problems = column_channel_problems(model, [c.name for c in profile.channels])
+    if problems:
+        raise ModelError("\n".join(f"{model_path}: {p}" for p in problems))
     _configure_logging(args.log_format, getattr(args, "verbose", 0))
     from threadpoolctl import threadpool_limits
 

@@ -208,6 +208,14 @@ class FactorHistory:
         return np.concatenate([du, np.nan_to_num(derived, nan=0.0)])
 
 
+def column_channel_problems(model: ThermalModel, channel_names: Iterable[str]) -> list[str]:
+    """One message per derived ``column`` input of ``model`` that no profile channel of its name feeds."""
+    have = set(channel_names)
+    return [f'model input "{d.name}" reads recorded column "{d.column}", but the profile has no channel '
+            f'"{d.column}" (channels: {", ".join(sorted(have)) or "none"}): add a [channels.{d.column}] table '
+            f"that reads it" for d in model.inputs if isinstance(d, Column) and d.column not in have]
+
+
 def history_windows(model: ThermalModel, window_s: float, live: Live) -> int:
     """How many windows of stored history the rebuild reads (see the module docstring)."""
     if live.history_max_h is not None:
@@ -237,13 +245,9 @@ class Estimator:
     def __init__(self, model: ThermalModel, *, window_s: float, live: Live,
                  channels: Mapping[str, str] | None = None, channel_names: Iterable[str] | None = None) -> None:
         if channel_names is not None:
-            have = set(channel_names)
-            missing = [d for d in model.inputs if isinstance(d, Column) and d.column not in have]
-            if missing:
-                raise ModelError("; ".join(
-                    f'model input "{d.name}" reads recorded column "{d.column}", but the profile has no channel '
-                    f'"{d.column}" (channels: {", ".join(sorted(have)) or "none"}): add a [channels.{d.column}] '
-                    f"table that reads it" for d in missing))
+            problems = column_channel_problems(model, channel_names)
+            if problems:
+                raise ModelError("; ".join(problems))
         self.model = model
         self.window_s = float(window_s)
         self.live = live
