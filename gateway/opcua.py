@@ -213,13 +213,14 @@ class OpcUaServer:
             item = items[-1]
             if item is not ...:
                 await self._apply(item)
-                self.published += 1
             if self.on_hold is not None and self.settings.writable:
                 value = bool(await self._nodes["Compensation.HoldRequest"].read_value())
                 if value != hold:
                     hold = value
                     log.warning("OPC UA: hold request %s", "ON" if hold else "off")
                     self.on_hold(hold)
+            if item is not ...:  # counted once the snapshot is shown and the hold request it met is passed on
+                self.published += 1
 
     async def _apply(self, h: dict[str, Any]) -> None:
         values: dict[str, Any] = {}
