@@ -216,11 +216,6 @@ QUALITY_COLUMNS = ("q_good", "q_coverage", "q_samples_expected", "q_samples_take
                    "q_largest_gap_s", "q_devices_in_error")
 
 
-def _channel_mean(record: WindowRecord, channel: str) -> float:
-    stats = record.channels.get(channel)
-    return float(stats.mean) if stats is not None and stats.count else math.nan
-
-
 def export_recording(store: RecordStore, profile: Profile, out: str | Path) -> Path:
     """Write the store's windows as a recording CSV for ``profile`` (see the module docstring)."""
     window_s = float(store.meta.get("window_s", "nan"))
@@ -245,7 +240,7 @@ def export_recording(store: RecordStore, profile: Profile, out: str | Path) -> P
     used = {f.channel for f in profile.factors} | set(profile.sampling.displacement_channels.values())
     for c in profile.channels:  # other channels (a room thermometer): their means, for diagnosis
         if c.name not in used and c.name not in cols:
-            cols[c.name] = np.array([_channel_mean(r, c.name) for r in records])
+            cols[c.name] = np.array([r.channel_mean(c.name) for r in records])
     cols["q_good"] = np.array([1.0 if r.status == "good" else 0.0 for r in records])
     cols["q_coverage"] = np.array([r.coverage for r in records])
     cols["q_samples_expected"] = np.array([float(r.samples_expected) for r in records])

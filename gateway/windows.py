@@ -204,6 +204,13 @@ class WindowRecord:
     burst_revolutions: Mapping[str, float] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
 
+    def channel_mean(self, channel: str) -> float:
+        """The window mean of ``channel``; NaN when it has no good sample in this window."""
+        stats = self.channels.get(channel)
+        if stats is None or not stats.count or not math.isfinite(stats.mean):
+            return math.nan
+        return float(stats.mean)
+
     @property
     def coverage(self) -> float:
         """The lowest coverage of any channel (0 without channels)."""

@@ -180,7 +180,7 @@ class FactorHistory:
         """
         initial = {f: float(v) for f, v in zip(self.model.factors, self.reference, strict=True)}
         for c in self.columns:
-            initial[c] = next((v for v in (self._column_value(r, c) for r in records) if math.isfinite(v)), math.nan)
+            initial[c] = next((v for v in (r.channel_mean(c) for r in records) if math.isfinite(v)), math.nan)
             if not math.isfinite(initial[c]):
                 log.warning("channel %s (a column input of the model) has no value in the first window: its "
                             "deviation counts as 0", c)
@@ -189,21 +189,14 @@ class FactorHistory:
         start = initial_values(self.model.inputs, initial, time0_s=time0)
         self._start = np.array([start[d.name] for d in self.model.inputs])
 
-    @staticmethod
-    def _column_value(record: WindowRecord | None, column: str) -> float:
-        stats = None if record is None else record.channels.get(column)
-        if stats is None or not stats.count or not math.isfinite(stats.mean):
-            return math.nan
-        return float(stats.mean)
-
     def _with_inputs(self, du: np.ndarray, end_s: float, record: WindowRecord | None) -> np.ndarray:
         """``du`` followed by the derived inputs' deviations for the window ending at ``end_s``."""
         if self._stepper is None:
             return du
         assert self._start is not None
         signals = {f: float(r + d) for f, r, d in zip(self.model.factors, self.reference, du, strict=True)}
-        values = self._stepper.step(signals, time_s=end_s,
-                                    columns={c: self._column_value(record, c) for c in self.columns})
+        columns = {c: math.nan if record is None else record.channel_mean(c) for c in self.columns}
+        values = self._stepper.step(signals, time_s=end_s, columns=columns)
         derived = np.array([values[d.name] for d in self.model.inputs]) - self._start
         return np.concatenate([du, np.nan_to_num(derived, nan=0.0)])
 
