@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -109,44 +110,76 @@ class AxisProblem:
             raise ValueError("no measured displacement on this axis")
         exp_idx = np.broadcast_to(np.arange(es.n_exp)[:, None], self.valid.shape)[self.valid]
         self.offset_cols = (exp_idx[:, None] == np.arange(es.n_exp)[None, :]).astype(float)
+        # rows run experiment by experiment: the offsets are projected out by removing each experiment's
+        # mean (Frisch-Waugh), so the QR and the Jacobian carry the path columns only
+        self._counts = self.valid.sum(axis=1)
+        self._starts = np.concatenate([[0], np.cumsum(self._counts)[:-1]])[self._counts > 0]
+        self._y_means = self._group_means(self.y[:, None])[:, 0]
+        self.y_demeaned = self.y - np.repeat(self._y_means, self._counts[self._counts > 0])
         self.bounds = Bounds.for_data(es.dt_s, es.longest_s)
         self.evaluations = 0
-        self._moving = [np.flatnonzero(np.any(es.du[j] != 0.0, axis=1)) for j in range(len(es.factors))]
+        # the racing restarts an optimizer where the last one stopped: its first residual and Jacobian
+        # were computed at the end of the round before (a few entries, each a design matrix's worth)
+        self._memo: OrderedDict[tuple, object] = OrderedDict()
+        # per factor: the experiments in which it moves, and where their valid samples go in a column
+        position = np.full(self.valid.shape, -1)
+        position[self.valid] = np.arange(self.n)
+        self._moving = []
+        for j in range(len(es.factors)):
+            rows = np.flatnonzero(np.any(es.du[j] != 0.0, axis=1))
+            self._moving.append((rows, np.flatnonzero(self.valid[rows]), position[rows][self.valid[rows]]))
 
     # -- the design matrix and the projected residual --------------------------------------------------
     def path_columns(self, j: int, structure: str, theta: Sequence[float]) -> list[np.ndarray]:
         # a factor moves in a few experiments only; its response is exactly zero in the others (inputs are
         # deviations from rest), so only those are filtered
-        rows = self._moving[j]
+        rows, src, dest = self._moving[j]
         out = []
         for resp in unit_responses(structure, theta, self.es.du[j][rows], self.es.dt_s):
-            full = np.zeros(self.valid.shape)
-            full[rows] = resp
-            out.append(full[self.valid])
+            col = np.zeros(self.n)
+            col[dest] = resp.ravel().take(src)
+            out.append(col)
         return out
 
     def columns(self, structures: Sequence[str], thetas: Sequence[Sequence[float]]) -> np.ndarray:
         cols = [c for j, s in enumerate(structures) if s != "zero" for c in self.path_columns(j, s, thetas[j])]
         return np.column_stack([*cols, self.offset_cols]) if cols else self.offset_cols
 
-    def solve(self, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(linear parameters, residual, Q) for a design matrix; columns scaled for conditioning."""
-        scale = np.linalg.norm(phi, axis=0)
+    def _group_means(self, m: np.ndarray) -> np.ndarray:
+        """Per-experiment column means of ``m`` (rows of the experiments that have any)."""
+        return np.add.reduceat(m, self._starts, axis=0) / self._counts[self._counts > 0][:, None]
+
+    def demean(self, m: np.ndarray) -> np.ndarray:
+        """``m`` less each experiment's column means: the residual maker of the offset columns."""
+        return m - np.repeat(self._group_means(m), self._counts[self._counts > 0], axis=0)
+
+    def solve(self, paths: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(path gains then per-experiment offsets, residual, Q of the demeaned path columns).
+
+        Columns are scaled for conditioning; the offsets come from the experiments' means after the gains.
+        """
+        self.evaluations += 1
+        offsets = np.zeros(self.es.n_exp)
+        if paths.shape[1] == 0:
+            offsets[self._counts > 0] = self._y_means
+            return offsets, self.y_demeaned.copy(), np.zeros((self.n, 0))
+        X = self.demean(paths)
+        scale = np.linalg.norm(X, axis=0)
         scale[scale == 0] = 1.0
-        Q, R = scipy.linalg.qr(phi / scale, mode="economic", check_finite=False)
-        qty = Q.T @ self.y
+        Q, R = scipy.linalg.qr(X / scale, mode="economic", check_finite=False)
+        qty = Q.T @ self.y_demeaned
         # a (near-)rank-deficient design happens when a path's response is nearly another's; keep going
         diag = np.abs(np.diag(R))
         keep = diag > 1e-10 * max(diag.max(), 1e-300)
-        coef = np.zeros(phi.shape[1])
+        coef = np.zeros(X.shape[1])
         if keep.all():
             coef = scipy.linalg.solve_triangular(R, qty, check_finite=False)
         else:
             coef[keep] = np.linalg.lstsq(R[np.ix_(keep, keep)], qty[keep], rcond=None)[0]
         coef = coef / scale
-        resid = self.y - Q @ qty
-        self.evaluations += 1
-        return coef, resid, Q
+        offsets[self._counts > 0] = self._y_means - self._group_means(paths) @ coef
+        resid = self.y_demeaned - Q @ qty
+        return np.concatenate([coef, offsets]), resid, Q
 
     def fit(self, structures: Sequence[str], theta0: Sequence[Sequence[float]], *,
             max_nfev: int = 100) -> AxisFit:
@@ -165,25 +198,26 @@ class AxisProblem:
         def split(x: np.ndarray) -> list[np.ndarray]:
             return _split(x, sizes)
 
-        cache: dict[str, object] = {}
-
         def evaluate(x: np.ndarray) -> tuple[list[np.ndarray], list[list[np.ndarray]], np.ndarray, np.ndarray,
                                              np.ndarray]:
-            if cache.get("x") is not None and np.array_equal(cache["x"], x):
-                return cache["v"]  # type: ignore[return-value]
+            return self._remember(("r", structures, x.tobytes()), lambda: compute(x))  # type: ignore[return-value]
+
+        def compute(x: np.ndarray) -> tuple[list[np.ndarray], list[list[np.ndarray]], np.ndarray, np.ndarray,
+                                            np.ndarray]:
             thetas = split(x)
             per_path = [self.path_columns(j, s, thetas[j]) if s != "zero" else []
                         for j, s in enumerate(structures)]
             flat = [c for cols in per_path for c in cols]
-            phi = np.column_stack([*flat, self.offset_cols]) if flat else self.offset_cols
-            coef, r, Q = self.solve(phi)
-            cache["x"], cache["v"] = x.copy(), (thetas, per_path, coef, r, Q)
-            return cache["v"]  # type: ignore[return-value]
+            coef, r, Q = self.solve(np.column_stack(flat) if flat else np.zeros((self.n, 0)))
+            return thetas, per_path, coef, r, Q
 
         def residual(x: np.ndarray) -> np.ndarray:
             return evaluate(x)[3]
 
         def jacobian(x: np.ndarray) -> np.ndarray:
+            return self._remember(("J", structures, x.tobytes()), lambda: kaufman(x))  # type: ignore[return-value]
+
+        def kaufman(x: np.ndarray) -> np.ndarray:
             thetas, per_path, coef, _, Q = evaluate(x)
             gains = _split(coef, [len(cols) for cols in per_path])
             V = np.empty((self.n, x.size))
@@ -194,6 +228,7 @@ class AxisProblem:
                 th[local] += h
                 moved = self.path_columns(j, structures[j], th)
                 V[:, q] = sum((m - c) * g for m, c, g in zip(moved, per_path[j], gains[j], strict=True)) / h
+            V = self.demean(V)
             return -(V - Q @ (Q.T @ V))
 
         nfev = 1
@@ -211,6 +246,15 @@ class AxisProblem:
                       gains=gains, offsets=coef[k:], rss=float(r @ r), n=self.n, nfev=nfev, converged=converged)
         fit.residuals = self._per_experiment(r)
         return fit
+
+    def _remember(self, key: tuple, compute: Callable[[], object], size: int = 6) -> object:
+        if key in self._memo:
+            self._memo.move_to_end(key)
+            return self._memo[key]
+        value = self._memo[key] = compute()
+        if len(self._memo) > size:
+            self._memo.popitem(last=False)
+        return value
 
     def best_of(self, structures: Sequence[str], starts: Sequence[Sequence[Sequence[float]]], *,
                 round_nfev: int = 5, max_rounds: int = 8) -> AxisFit:
