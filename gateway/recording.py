@@ -25,6 +25,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import os
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -320,6 +321,18 @@ def _fmt(x: float) -> str:
     return "" if not math.isfinite(x) else repr(float(x))
 
 
+def _header(names: Sequence[str], meta: Mapping[str, str] | None, time_column: str) -> str:
+    lines = [f"# {FORMAT_LINE}", *(f"# {key}: {value}" for key, value in (meta or {}).items()),
+             ",".join([time_column, *names])]
+    return "\n".join(lines) + "\n"
+
+
+def _rows(time_s: np.ndarray, columns: Mapping[str, np.ndarray], names: Sequence[str]) -> str:
+    arrays = [np.asarray(columns[n], dtype=float) for n in names]
+    return "".join(",".join([_fmt(t), *(_fmt(a[k]) for a in arrays)]) + "\n"
+                   for k, t in enumerate(np.asarray(time_s, dtype=float)))
+
+
 def format_recording(
     *,
     time_s: np.ndarray,
@@ -328,27 +341,49 @@ def format_recording(
     time_column: str = "time_s",
 ) -> str:
     """CSV text for a recording; NaN becomes an empty cell; floats are written to round-trip exactly."""
-    out = io.StringIO()
-    out.write(f"# {FORMAT_LINE}\n")
-    for key, value in (meta or {}).items():
-        out.write(f"# {key}: {value}\n")
-    names = list(columns)
-    out.write(",".join([time_column, *names]) + "\n")
-    arrays = [np.asarray(columns[n], dtype=float) for n in names]
-    for k, t in enumerate(np.asarray(time_s, dtype=float)):
-        out.write(",".join([_fmt(t), *(_fmt(a[k]) for a in arrays)]) + "\n")
-    return out.getvalue()
+    return _header(list(columns), meta, time_column) + _rows(time_s, columns, list(columns))
 
 
-def write_recording(path: str | Path, **kwargs: object) -> Path:
-    """Write :func:`format_recording` output atomically (temp file, fsync, rename)."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", encoding="utf-8", newline="") as fh:
-        fh.write(format_recording(**kwargs))  # type: ignore[arg-type]
-        fh.flush()
-        import os
+class RecordingWriter:
+    """A recording CSV written chunk by chunk, atomically.
 
-        os.fsync(fh.fileno())
-    tmp.replace(path)
-    return path
+    The header goes out when the writer opens, each :meth:`write` appends rows, and the temp file replaces
+    ``path`` (fsynced) only when the ``with`` block ends without an error: a failed export leaves any
+    earlier file at ``path`` as it was and no partial one. Memory stays that of one chunk, however long
+    the recording.
+    """
+
+    def __init__(self, path: str | Path, *, names: Sequence[str], meta: Mapping[str, str] | None = None,
+                 time_column: str = "time_s") -> None:
+        self.path = Path(path)
+        self.names = list(names)
+        self._tmp = self.path.with_name(self.path.name + ".tmp")
+        self._fh = open(self._tmp, "w", encoding="utf-8", newline="")  # noqa: SIM115 (closed in __exit__)
+        self._fh.write(_header(self.names, meta, time_column))
+
+    def write(self, time_s: np.ndarray, columns: Mapping[str, np.ndarray]) -> None:
+        """Append rows: ``columns`` holds every name given when the writer was opened."""
+        self._fh.write(_rows(time_s, columns, self.names))
+
+    def __enter__(self) -> RecordingWriter:
+        return self
+
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        try:
+            if exc_type is None:
+                self._fh.flush()
+                os.fsync(self._fh.fileno())
+        finally:
+            self._fh.close()
+        if exc_type is None:
+            self._tmp.replace(self.path)
+        else:
+            self._tmp.unlink(missing_ok=True)
+
+
+def write_recording(path: str | Path, *, time_s: np.ndarray, columns: Mapping[str, np.ndarray],
+                    meta: Mapping[str, str] | None = None, time_column: str = "time_s") -> Path:
+    """Write a whole recording atomically (temp file, fsync, rename); see :class:`RecordingWriter`."""
+    with RecordingWriter(path, names=list(columns), meta=meta, time_column=time_column) as writer:
+        writer.write(time_s, columns)
+    return writer.path

@@ -33,7 +33,7 @@ import numpy as np
 
 from gateway.errors import RecordingError
 from gateway.profile import Profile
-from gateway.recording import write_recording
+from gateway.recording import RecordingWriter
 from gateway.windows import ChannelStats, DeviceQuality, WindowRecord
 
 FORMAT = 1
@@ -178,13 +178,30 @@ class RecordStore:
         with self._lock:
             return int(self._db.execute("SELECT COUNT(*) FROM windows").fetchone()[0])
 
-    def windows(self, *, since: int | None = None) -> Iterator[WindowRecord]:
-        """The stored records in window order (from index ``since`` on)."""
+    def windows(self, *, since: int | None = None, chunk: int = 1000) -> Iterator[WindowRecord]:
+        """The stored records in window order (from index ``since`` on), read ``chunk`` rows at a time.
+
+        The lock is held for one chunk's query only, so a long read (an export of months) neither holds
+        the whole store in memory nor keeps the window closer from appending.
+        """
+        after = (since if since is not None else -(2**62)) - 1
+        while True:
+            with self._lock:
+                rows = self._db.execute("SELECT idx, start_s, end_s, status, body FROM windows WHERE idx > ? "
+                                        "ORDER BY idx LIMIT ?", (after, chunk)).fetchall()
+            for row in rows:
+                yield record_from_row(*row)
+            if len(rows) < chunk:
+                return
+            after = rows[-1][0]
+
+    def summary(self) -> tuple[int, int, bool]:
+        """(windows, windows not good, whether any window holds displacement bursts), in one query."""
         with self._lock:
-            rows = self._db.execute("SELECT idx, start_s, end_s, status, body FROM windows WHERE idx >= ? "
-                                    "ORDER BY idx", (since if since is not None else -(2**62),)).fetchall()
-        for row in rows:
-            yield record_from_row(*row)
+            n, bad, displacement = self._db.execute(
+                "SELECT COUNT(*), TOTAL(status != 'good'), "
+                "COALESCE(MAX(json_extract(body, '$.displacement') != '{}'), 0) FROM windows").fetchone()
+        return int(n), int(bad), bool(displacement)
 
     def first(self) -> WindowRecord | None:
         """The oldest stored record (``None`` in an empty store)."""
@@ -212,29 +229,45 @@ class RecordStore:
         self.close()
 
 
-QUALITY_COLUMNS = ("q_good", "q_coverage", "q_samples_expected", "q_samples_taken", "q_missed_ticks",
-                   "q_largest_gap_s", "q_devices_in_error")
+def export_recording(store: RecordStore, profile: Profile, out: str | Path, *, chunk: int = 2000) -> Path:
+    """Write the store's windows as a recording CSV for ``profile`` (see the module docstring).
 
-
-def export_recording(store: RecordStore, profile: Profile, out: str | Path) -> Path:
-    """Write the store's windows as a recording CSV for ``profile`` (see the module docstring)."""
+    The header's figures come from one query (:meth:`RecordStore.summary`); the rows are then read and
+    written ``chunk`` windows at a time, so memory does not grow with the store.
+    """
     window_s = float(store.meta.get("window_s", "nan"))
     if profile.recording.period_s != window_s:
         raise RecordingError(f"{profile.path}: recording.period_s ({profile.recording.period_s:g} s) differs from the "
                              f"recorded window ({window_s:g} s): set recording.period_s = {window_s:g}")
-    records = list(store.windows())
-    if not records:
-        raise RecordingError(f"{store.path}: no windows recorded yet: nothing to export")
     stored = json.loads(store.meta.get("factors", "{}"))
     missing = [f.name for f in profile.factors if f.name not in stored]
     if missing:
         raise RecordingError(f"{store.path}: the store has no factor {', '.join(missing)} of profile {profile.path}")
-    n = len(records)
+    n, bad, displacement = store.summary()
+    if not n:
+        raise RecordingError(f"{store.path}: no windows recorded yet: nothing to export")
+    meta = {"machine": store.meta.get("machine", ""), "records": str(store.path), "windows": str(n),
+            "insufficient_windows": f"{bad} (factors left empty)"}
+    names = list(_export_columns([], profile, displacement))
+    with RecordingWriter(out, names=names, meta=meta, time_column=profile.recording.time_column) as writer:
+        batch: list[WindowRecord] = []
+        for r in store.windows(chunk=chunk):
+            batch.append(r)
+            if len(batch) == chunk:
+                writer.write(np.array([b.end_s for b in batch]), _export_columns(batch, profile, displacement))
+                batch = []
+        if batch:
+            writer.write(np.array([b.end_s for b in batch]), _export_columns(batch, profile, displacement))
+    return writer.path
+
+
+def _export_columns(records: list[WindowRecord], profile: Profile, displacement: bool) -> dict[str, np.ndarray]:
+    """The exported columns of some windows, in the file's column order."""
     cols: dict[str, np.ndarray] = {}
     for f in profile.factors:
         cols[f.column] = np.array([r.factors.get(f.name, math.nan) if r.status == "good" else math.nan
                                    for r in records])
-    if any(r.displacement for r in records):
+    if displacement:
         for axis, column in profile.recording.displacement_columns.items():
             cols[column] = np.array([r.displacement.get(axis, math.nan) for r in records])
     used = {f.channel for f in profile.factors} | set(profile.sampling.displacement_channels.values())
@@ -248,8 +281,4 @@ def export_recording(store: RecordStore, profile: Profile, out: str | Path) -> P
     cols["q_missed_ticks"] = np.array([float(r.missed_ticks) for r in records])
     cols["q_largest_gap_s"] = np.array([r.largest_gap_s for r in records])
     cols["q_devices_in_error"] = np.array([float(len(r.devices_in_error)) for r in records])
-    bad = sum(1 for r in records if r.status != "good")
-    meta = {"machine": store.meta.get("machine", ""), "records": str(store.path), "windows": str(n),
-            "insufficient_windows": f"{bad} (factors left empty)"}
-    return write_recording(out, time_s=np.array([r.end_s for r in records]), columns=cols, meta=meta,
-                           time_column=profile.recording.time_column)
+    return cols

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gateway.errors import RecordingError
-from gateway.recording import format_recording, read_recording, write_recording
+from gateway.recording import RecordingWriter, format_recording, read_recording, write_recording
 
 F = {"speed": "speed_rpm", "i1": "i1_sq"}
 D = {"z": "z_um"}
@@ -132,3 +132,17 @@ def test_real_cnc_signal_file_keeps_every_column(shared_data):
     assert "Machining_Process" in rec.text
     assert "X1_CurrentFeedback" in rec.extras
     assert np.isfinite(rec.factors["i"]).all()
+
+
+def test_a_recording_written_in_chunks_equals_one_written_whole_and_a_failed_one_changes_nothing(tmp_path):
+    t = np.arange(1.0, 8.0) * 60.0
+    cols = {"a": np.linspace(0.0, 1.0, 7), "b": np.array([1.0, np.nan, 3.0, 4.0, 5.0, 6.0, 7.0])}
+    whole = write_recording(tmp_path / "whole.csv", time_s=t, columns=cols, meta={"m": "1"}).read_text()
+    with RecordingWriter(tmp_path / "parts.csv", names=["a", "b"], meta={"m": "1"}) as w:
+        for part in (slice(0, 3), slice(3, 7)):
+            w.write(t[part], {k: v[part] for k, v in cols.items()})
+    assert (tmp_path / "parts.csv").read_text() == whole
+    with pytest.raises(KeyError), RecordingWriter(tmp_path / "parts.csv", names=["a", "c"]) as w:
+        w.write(t, cols)  # no column "c": the export fails half way
+    assert (tmp_path / "parts.csv").read_text() == whole  # the earlier file is untouched
+    assert not (tmp_path / "parts.csv.tmp").exists()

@@ -118,6 +118,17 @@ def test_export_is_a_recording_identify_and_estimate_read_with_insufficient_wind
     assert rec.meta["insufficient_windows"] == "1 (factors left empty)"
 
 
+def test_export_and_reading_back_in_chunks_give_the_same_file(recorded, tmp_path):
+    # a store of months is read and written a chunk at a time: the chunk boundaries must not show
+    profile, store, records = recorded
+    whole = export_recording(store, profile, tmp_path / "whole.csv").read_text()
+    for chunk in (1, 3, 4):  # 6 windows: one a chunk, two full chunks, a full and a partial one
+        assert [r.index for r in store.windows(chunk=chunk)] == [r.index for r in records]
+        assert [r.index for r in store.windows(since=189, chunk=chunk)] == [189, 190, 191]
+        assert export_recording(store, profile, tmp_path / f"c{chunk}.csv", chunk=chunk).read_text() == whole
+    assert sorted(p.name for p in tmp_path.glob("*.tmp")) == []
+
+
 def test_cncgw_record_records_live_devices_for_n_minutes(tmp_path, capsys):
     from gateway.clock import ScaledClock
 
