@@ -23,12 +23,13 @@ import tempfile
 import time
 from pathlib import Path
 
+from gateway import BUNDLED
 from gateway.commands._common import positive_float
 from gateway.identify import identify
 from gateway.model import save_model
 from gateway.profile import load_profile
 
-PROFILE = Path(__file__).resolve().parents[2] / "profiles" / "sim-vmc.toml"
+PROFILE = BUNDLED / "sim-vmc.toml"
 IDENTIFICATION = ("spindle-1000rpm", "spindle-500rpm", "spindle-400-600rpm", "feed-x-fast", "feed-x-accel",
                   "feed-y-fast", "feed-y-accel", "feed-z-fast", "feed-z-accel")
 VALIDATION = "spindle-feeds"

@@ -17,12 +17,13 @@ import dataclasses
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from gateway import BUNDLED
 from simulators.devices.analog import AdcBoardConfig, RegisterChannel
 
 if TYPE_CHECKING:
     from simulators.devices.deviceset import DeviceSet
 
-BUNDLED_PROFILE = Path(__file__).resolve().parents[2] / "profiles" / "sim-vmc.toml"
+BUNDLED_PROFILE = BUNDLED / "sim-vmc.toml"
 VIAS = ("adc-tcp", "adc-rtu", "can-slcan", "can-virtual", "dcon")
 UNITS = {"spindle_speed": "rpm", "spindle_i1": "A", "spindle_i2": "A", "x_velocity": "mm/min",
          "y_velocity": "mm/min", "z_velocity": "mm/min", "x_current": "A", "y_current": "A", "z_current": "A",
