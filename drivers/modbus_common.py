@@ -5,7 +5,13 @@ input registers), how it is encoded (``data_type`` int16/uint16/int32/uint32/flo
 ``byte_order``) and how raw numbers become engineering units (``value = raw * scale + offset``).
 
 Channels on contiguous registers of one function are merged into one request (at most 125 registers,
-the protocol's limit), so eight int16 inputs on registers 0..7 cost one round trip. A raw value at the
+the protocol's limit), so eight int16 inputs on registers 0..7 cost one round trip.
+
+Several units behind one device (an RS-485 line with several Modbus RTU boards, or a Modbus TCP gateway in
+front of them): a channel's ``unit_id`` names its unit (default: the device's ``unit_id``); requests are
+planned per unit and a scan reads every unit in turn. The device is the line: a unit that does not answer
+fails the scan like any device timeout (the message names the unit), and the runner takes the line
+off-scan, as a real RS-485 master's silent slave costs the whole line a timeout anyway. A raw value at the
 limit of an integer type is flagged ``SATURATED`` (a converter at over-range sits there); a NaN float is
 ``BAD``. pymodbus clients are not thread-safe: a driver and its client belong to the one thread that
 samples the device.
@@ -43,6 +49,7 @@ class RegisterAddress:
     byte_order: str = "big"
     scale: float = 1.0
     offset: float = 0.0
+    unit_id: int | None = None  # None: the device's unit_id
 
     @property
     def n_registers(self) -> int:
@@ -77,54 +84,71 @@ def parse_register_address(table: Any) -> RegisterAddress | None:
     if scale == 0:
         table.problem("scale", "expected a non-zero number (engineering units per count), got 0")
         scale = None
+    unit_id = table.int("unit_id", default=None, min=1, max=247,
+                        expected="a Modbus unit address in 1..247 (the unit on the device's line or behind its "
+                                 "gateway; default: the device's unit_id)")
     if None in (address, function, data_type, word_order, byte_order, scale, offset):
+        return None
+    if "unit_id" in table and unit_id is None:  # a bad value, reported
         return None
     if address + _WORDS[data_type] - 1 > 65535:
         table.problem("address", f"a {data_type} at {address} runs past register 65535")
         return None
     return RegisterAddress(address=address, function=function, data_type=data_type, word_order=word_order,
-                           byte_order=byte_order, scale=scale, offset=offset)
+                           byte_order=byte_order, scale=scale, offset=offset, unit_id=unit_id)
 
 
 @dataclass(frozen=True, slots=True)
 class Request:
-    """One read request and the channels it serves: ``(channel index, first word in the answer)``."""
+    """One read request to one unit and the channels it serves: ``(channel index, first word in the answer)``."""
 
     function: int
     start: int
     count: int
     members: tuple[tuple[int, int], ...]
+    unit: int = 1
 
 
-def plan_requests(addresses: Sequence[RegisterAddress]) -> list[Request]:
-    """Merge channels on contiguous (or shared) registers of one function into as few requests as possible."""
+def plan_requests(addresses: Sequence[RegisterAddress], default_unit: int = 1) -> list[Request]:
+    """Merge channels on contiguous (or shared) registers of one unit and function into as few requests as possible."""
+    def unit_of(a: RegisterAddress) -> int:
+        return a.unit_id if a.unit_id is not None else default_unit
+
     requests: list[Request] = []
-    for function in FUNCTIONS:
-        chans = sorted((a.address, i) for i, a in enumerate(addresses) if a.function == function)
-        start = end = -1
-        members: list[tuple[int, int]] = []
-        for addr, i in chans:
-            last = addr + addresses[i].n_registers  # one past the channel's last register
-            if members and addr <= end and max(end, last) - start <= MAX_REGISTERS:
-                end = max(end, last)
-            else:
-                if members:
-                    requests.append(_request(function, start, end, members))
-                start, end, members = addr, last, []
-            members.append((i, addr))
-        if members:
-            requests.append(_request(function, start, end, members))
+    for unit in sorted({unit_of(a) for a in addresses}):
+        for function in FUNCTIONS:
+            chans = sorted((a.address, i) for i, a in enumerate(addresses)
+                           if a.function == function and unit_of(a) == unit)
+            start = end = -1
+            members: list[tuple[int, int]] = []
+            for addr, i in chans:
+                last = addr + addresses[i].n_registers  # one past the channel's last register
+                if members and addr <= end and max(end, last) - start <= MAX_REGISTERS:
+                    end = max(end, last)
+                else:
+                    if members:
+                        requests.append(_request(unit, function, start, end, members))
+                    start, end, members = addr, last, []
+                members.append((i, addr))
+            if members:
+                requests.append(_request(unit, function, start, end, members))
     return requests
 
 
-def _request(function: int, start: int, end: int, members: list[tuple[int, int]]) -> Request:
+def _request(unit: int, function: int, start: int, end: int, members: list[tuple[int, int]]) -> Request:
     return Request(function=function, start=start, count=end - start,
-                   members=tuple((i, addr - start) for i, addr in members))
+                   members=tuple((i, addr - start) for i, addr in members), unit=unit)
+
+
+def describe_request(r: Request, *, with_unit: bool = False) -> str:
+    """``fc4 0..8`` (``unit 2 fc4 0..8`` with the unit)."""
+    return (f"unit {r.unit} " if with_unit else "") + f"fc{r.function} {r.start}..{r.start + r.count - 1}"
 
 
 def describe_requests(requests: Sequence[Request]) -> str:
-    """``2 requests (fc4 0..8, fc4 100..117)``, for messages."""
-    parts = [f"fc{r.function} {r.start}..{r.start + r.count - 1}" for r in requests]
+    """``2 requests (fc4 0..8, fc4 100..117)``, for messages; units named when there are several."""
+    several = len({r.unit for r in requests}) > 1
+    parts = [describe_request(r, with_unit=several) for r in requests]
     return f"{len(requests)} request{'s' if len(requests) != 1 else ''} ({', '.join(parts)})"
 
 
@@ -135,7 +159,8 @@ class ModbusDriver(Driver):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
-        self.requests = plan_requests(self.addresses)
+        self.requests = plan_requests(self.addresses, self.options.unit_id)
+        self._several_units = len({r.unit for r in self.requests}) > 1
         self._client: Any = None
 
     def _make_client(self) -> Any:
@@ -160,27 +185,25 @@ class ModbusDriver(Driver):
         from pymodbus.exceptions import ModbusIOException
 
         client = self._client
-        unit = self.options.unit_id
         values = [math.nan] * len(self.addresses)
         quality = [Quality.BAD] * len(self.addresses)
         for req in self.requests:
             call = client.read_input_registers if req.function == 4 else client.read_holding_registers
+            what = describe_request(req, with_unit=self._several_units)
             try:
-                rr = call(req.start, count=req.count, device_id=unit)
+                rr = call(req.start, count=req.count, device_id=req.unit)
             except ModbusIOException as exc:
                 opt = self.options
                 raise DeviceTimeout(
-                    f'device "{self.name}" ({self.kind}): no valid answer to fc{req.function} {req.start}..'
-                    f"{req.start + req.count - 1} within {opt.timeout_s:g} s x {opt.retries + 1} "
-                    f"attempt{'s' if opt.retries else ''}: {exc}") from exc
+                    f'device "{self.name}" ({self.kind}): no valid answer to {what} within {opt.timeout_s:g} s x '
+                    f"{opt.retries + 1} attempt{'s' if opt.retries else ''}: {exc}") from exc
             if rr.isError():
                 code = getattr(rr, "exception_code", None)
-                raise DriverError(f'device "{self.name}" ({self.kind}): fc{req.function} {req.start}..'
-                                  f"{req.start + req.count - 1} answered with exception {code} "
+                raise DriverError(f'device "{self.name}" ({self.kind}): {what} answered with exception {code} '
                                   f"({_EXCEPTIONS.get(code, 'unknown')})")
             regs = rr.registers
             if len(regs) < req.count:
-                raise DriverError(f'device "{self.name}" ({self.kind}): fc{req.function} {req.start}: '
+                raise DriverError(f'device "{self.name}" ({self.kind}): {what}: '
                                   f"expected {req.count} registers, got {len(regs)}")
             for i, first in req.members:
                 a = self.addresses[i]

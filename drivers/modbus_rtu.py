@@ -2,8 +2,8 @@
 
 Device keys: ``port`` (the serial device, required), ``baudrate`` (19200), ``parity`` ("N", "E", "O"),
 ``stopbits`` (1 or 2), ``unit_id`` (1), and the common keys of :class:`drivers.base.DeviceOptions`.
-Channel keys: see :mod:`drivers.modbus_common`. One ``[devices.NAME]`` per serial line: two devices
-cannot open the same port.
+Channel keys: see :mod:`drivers.modbus_common`. One ``[devices.NAME]`` per serial line: several boards on
+one RS-485 line are one device whose channels name their ``unit_id``; two devices cannot open the same port.
 
 Link budget: one scan costs, per request, an 8-byte request and a ``5 + 2 * count`` byte answer, each
 followed by the 3.5-character silence that ends an RTU frame. At 115200 baud 8N1 nine int16 registers
@@ -73,7 +73,7 @@ class ModbusRtuDriver(ModbusDriver):
 
     @classmethod
     def link_budget(cls, options: ModbusRtuOptions, addresses: Sequence[RegisterAddress]) -> LinkBudget:
-        requests = plan_requests(addresses)
+        requests = plan_requests(addresses, options.unit_id)
         char_s = serial_char_s(options.baudrate, parity=options.parity, stopbits=options.stopbits)
         chars = sum(8 + 3.5 + 5 + 2 * r.count + 3.5 for r in requests)
         seconds = chars * char_s

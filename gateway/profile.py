@@ -292,6 +292,15 @@ def _parse_acquisition(root: Table, factors: list[Factor],
         if period > sampling.window_s:
             t.problem("period_s", f"the device's period ({period:g} s) must not exceed the window "
                                   f"({sampling.window_s:g} s)")
+        serial = getattr(options, "port", None)
+        if isinstance(serial, str):  # a serial line is opened by one device only
+            other = next((d.name for d in devices if getattr(d.options, "port", None) == serial), None)
+            if other is not None:
+                what = {"modbus_rtu": "unit_id", "dcon": "module"}.get(driver)
+                how = (f"one [devices.NAME] for the line, each channel naming its {what}" if what
+                       else "one [devices.NAME] for the line")
+                t.problem("port", f'"{serial}" is already the port of device "{other}": one serial line is one '
+                                  f"device ({how})")
         devices.append(Device(name=dname, driver=driver, options=options, period_s=period))
     by_name = {d.name: d for d in devices}
 

@@ -15,7 +15,7 @@ from gateway.clock import ManualClock
 from gateway.errors import DeviceTimeout, DriverError
 from gateway.profile import Device, load_profile
 from gateway.runner import DeviceRunner
-from simulators.devices import DeviceSetConfig, RegisterChannel, serve
+from simulators.devices import AdcBoardConfig, DeviceSetConfig, RegisterChannel, serve
 from simulators.devices.analog import DEFAULT_ADC_CONFIG
 from simulators.devices.profile_out import adc_with_displacement
 
@@ -208,3 +208,71 @@ def test_tcp_disconnect_is_one_failed_read_then_a_reconnect(board, tmp_path):
     assert [r is not None for r in results] in ([False, True, True], [True, True, True])
     assert runner.state == "closed"
     assert runner.total.reads_ok >= 3
+
+
+def test_several_boards_on_one_rs485_line_are_one_device_whose_channels_name_their_unit(tmp_path):
+    # two simulated boards share one pseudo-terminal line (each answers its own address); the gateway
+    # opens the port once and reads unit 1 (the device's), then unit 5
+    clock = ManualClock(50.0)
+    source = WaveSource()
+    second = AdcBoardConfig(device_id=5, channels=(
+        RegisterChannel(channel="x_current", address=0, encoding="float32"),
+        RegisterChannel(channel="z_current", address=2, encoding="float32")))
+    config = DeviceSetConfig(adc_tcp_port=None, adc_rtu_more=(second,), can=None, dcon=None, cnc=None)
+    with serve(source, clock, config) as devices:
+        assert devices.adc_rtu_more[0].serial_port == devices.adc_rtu.serial_port
+        assert "adc-rtu-5" in devices.describe()
+        path = tmp_path / "line.toml"
+        path.write_text(f"""
+[machine]
+name = "line"
+[factors.spindle_speed]
+unit = "rpm"
+stat = "mean"
+[devices.rs485]
+driver = "modbus_rtu"
+port = "{devices.adc_rtu.serial_port}"
+baudrate = 115200
+period_s = 0.01
+timeout_s = 0.2
+[channels.spindle_speed]
+device = "rs485"
+address = 100
+data_type = "float32"
+[channels.x_current]
+device = "rs485"
+address = 0
+data_type = "float32"
+unit_id = 5
+[channels.z_current]
+device = "rs485"
+address = 2
+data_type = "float32"
+unit_id = 5
+""")
+        profile = load_profile(path)
+        driver = make_driver(profile, "rs485", clock)
+        with driver:
+            assert describe_requests(driver.requests) == "2 requests (unit 1 fc4 100..101, unit 5 fc4 0..3)"
+            reading = driver.read()
+            want = source.values(reading.t_s)
+            assert reading.quality == (Quality.GOOD,) * 3
+            for name, value in zip(driver.channel_names, reading.values, strict=True):
+                assert value == pytest.approx(want[name], rel=1e-6), name
+            # the second board stops answering: the scan fails naming its unit, the line is one device
+            devices.adc_rtu_more[0].faults.drop_replies = True
+            with pytest.raises(DeviceTimeout) as err:
+                driver.read()
+            assert str(err.value).startswith('device "rs485" (Modbus RTU): no valid answer to unit 5 fc4 0..3 '
+                                             "within 0.2 s x 1 attempt: ")
+            devices.adc_rtu_more[0].faults.drop_replies = False
+            clock.advance(3.0)
+            again = driver.read()  # reopens the line and reads both boards again
+        assert again.values != reading.values
+        assert devices.adc_rtu.faults.counts.get("dropped", 0) == 0
+        assert devices.adc_rtu_more[0].faults.counts["dropped"] >= 1
+
+
+def test_boards_on_one_line_need_distinct_addresses():
+    with pytest.raises(ValueError, match=r"the boards on one RS-485 line need distinct device ids. Got \[1, 1\]"):
+        DeviceSetConfig(adc_rtu_more=(DEFAULT_ADC_CONFIG,))

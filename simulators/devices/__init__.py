@@ -22,7 +22,7 @@ _WHERE = {
     "DeviceSet": "deviceset", "DeviceSetConfig": "deviceset", "serve": "deviceset",
     "Faults": "faults",
     "ModbusAdc": "modbus_adc",
-    "RtuTransport": "modbus_base", "TcpTransport": "modbus_base",
+    "RtuBus": "modbus_base", "RtuTransport": "modbus_base", "TcpTransport": "modbus_base",
     "DeviceLoop": "runtime",
 }
 

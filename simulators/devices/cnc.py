@@ -53,7 +53,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from gateway.clock import Clock
 from simulators.devices.faults import Faults
-from simulators.devices.modbus_base import ModbusDevice, RtuTransport, TcpTransport
+from simulators.devices.modbus_base import ModbusDevice, RtuBus, RtuTransport, TcpTransport
 from simulators.live import LiveSource
 
 ACTIVE, WATCHDOG_TRIPPED, RAMPING, LAST_WRITE_REJECTED, HEARTBEAT_OK = (1 << i for i in range(5))
@@ -172,7 +172,7 @@ class CompensationServer(ModbusDevice):
     kind = "CNC compensation interface"
 
     def __init__(self, *, source: LiveSource, clock: Clock, config: CompensationConfig | None = None,
-                 transport: TcpTransport | RtuTransport | None = None, serial_link: Path | None = None,
+                 transport: TcpTransport | RtuTransport | None = None, serial_link: Path | RtuBus | None = None,
                  faults: Faults | None = None, name: str = "cnc") -> None:
         config = config or CompensationConfig()
         super().__init__(name=name, transport=transport or TcpTransport(), device_id=config.device_id,

@@ -28,7 +28,7 @@ from simulators.devices.cnc import CompensationConfig, CompensationServer
 from simulators.devices.dcon import DEFAULT_DCON_CONFIG, DconLine, DconLineConfig
 from simulators.devices.faults import Faults
 from simulators.devices.modbus_adc import ModbusAdc
-from simulators.devices.modbus_base import RtuTransport, TcpTransport
+from simulators.devices.modbus_base import RtuBus, RtuTransport, TcpTransport
 from simulators.devices.runtime import DeviceLoop, check_loopback
 from simulators.live import LiveSource
 
@@ -63,6 +63,9 @@ class DeviceSetConfig:
     adc: AdcBoardConfig = DEFAULT_ADC_CONFIG  # the register map of both ADC boards
     adc_tcp_port: int | None = 0
     adc_rtu: RtuTransport | None = field(default_factory=RtuTransport)
+    #: more ADC boards on adc-rtu's RS-485 line (multi-drop), each its own device id and register map:
+    #: served as adc-rtu-<device id>; one port for all, each board answers its own address
+    adc_rtu_more: tuple[AdcBoardConfig, ...] = ()
     can: CanModuleConfig | None = DEFAULT_CAN_CONFIG
     can_virtual_channel: str | None = "cncgw-sim"
     can_slcan: bool = True
@@ -74,12 +77,19 @@ class DeviceSetConfig:
         check_loopback(self.host)
         if self.can is not None and self.can_virtual_channel is None and not self.can_slcan:
             raise ValueError("the CAN module needs a virtual channel, slcan, or both")
+        if self.adc_rtu_more:
+            if self.adc_rtu is None:
+                raise ValueError("adc_rtu_more puts boards on adc-rtu's line: adc_rtu is needed too")
+            ids = [self.adc.device_id, *(b.device_id for b in self.adc_rtu_more)]
+            if len(set(ids)) != len(ids):
+                raise ValueError(f"the boards on one RS-485 line need distinct device ids. Got {ids}")
 
 
 class DeviceSet:
     """The simulated devices of one machine, served together; see the module docstring.
 
-    Attributes (``None`` when left out by the config): ``adc_tcp``, ``adc_rtu`` (:class:`ModbusAdc`),
+    Attributes (``None`` when left out by the config): ``adc_tcp``, ``adc_rtu`` (:class:`ModbusAdc`; and
+    ``adc_rtu_more``, a list, the boards on its line),
     ``can`` (:class:`CanModule`), ``dcon`` (:class:`DconLine`), ``cnc`` (:class:`CompensationServer`).
     Each has ``faults`` and ``disconnect_clients()`` for fault injection.
     """
@@ -99,9 +109,12 @@ class DeviceSet:
             self.adc_tcp = None if config.adc_tcp_port is None else ModbusAdc(
                 **common, config=config.adc, name="adc-tcp",
                 transport=TcpTransport(host=config.host, port=config.adc_tcp_port))
-            self.adc_rtu = None if config.adc_rtu is None else ModbusAdc(
-                **common, config=config.adc, name="adc-rtu", transport=config.adc_rtu,
-                serial_link=self.link_dir / "adc-rtu")
+            line = None if config.adc_rtu is None else RtuBus(self.link_dir / "adc-rtu", config.adc_rtu)
+            self.adc_rtu = None if line is None else ModbusAdc(
+                **common, config=config.adc, name="adc-rtu", transport=config.adc_rtu, serial_link=line)
+            self.adc_rtu_more = [ModbusAdc(**common, config=b, name=f"adc-rtu-{b.device_id}",
+                                           transport=config.adc_rtu, serial_link=line)
+                                 for b in config.adc_rtu_more] if line is not None else []
             self.can = None if config.can is None else CanModule(
                 **common, config=config.can, name="can", virtual_channel=config.can_virtual_channel,
                 slcan_link=self.link_dir / "slcan" if config.can_slcan else None)
@@ -118,7 +131,7 @@ class DeviceSet:
     @property
     def devices(self) -> list[Device]:
         """Every device of the set, in start order."""
-        found = [self.adc_tcp, self.adc_rtu, self.can, self.dcon, self.cnc]
+        found = [self.adc_tcp, self.adc_rtu, *self.adc_rtu_more, self.can, self.dcon, self.cnc]
         return [d for d in found if d is not None]
 
     def start(self) -> DeviceSet:

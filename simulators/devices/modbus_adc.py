@@ -20,7 +20,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 from gateway.clock import Clock
 from simulators.devices.analog import DEFAULT_ADC_CONFIG, AdcBoardConfig, RegisterChannel
 from simulators.devices.faults import Faults
-from simulators.devices.modbus_base import ModbusDevice, RtuTransport, TcpTransport
+from simulators.devices.modbus_base import ModbusDevice, RtuBus, RtuTransport, TcpTransport
 from simulators.devices.sources import require_channels
 from simulators.live import LiveSource
 
@@ -42,7 +42,7 @@ class ModbusAdc(ModbusDevice):
     kind = "ADC board"
 
     def __init__(self, *, source: LiveSource, clock: Clock, config: AdcBoardConfig = DEFAULT_ADC_CONFIG,
-                 transport: TcpTransport | RtuTransport | None = None, serial_link: Path | None = None,
+                 transport: TcpTransport | RtuTransport | None = None, serial_link: Path | RtuBus | None = None,
                  faults: Faults | None = None, name: str = "adc") -> None:
         super().__init__(name=name, transport=transport or TcpTransport(), device_id=config.device_id,
                          serial_link=serial_link, faults=faults)

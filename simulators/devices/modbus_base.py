@@ -13,13 +13,15 @@ Transports:
 - :class:`RtuTransport`: Modbus RTU on a pseudo-terminal. pymodbus's serial server opens one
   pseudo-terminal; a bridge in the device loop carries the bytes between it and the client's
   pseudo-terminal (a stable link path), adding the line time at the configured baud rate. Requests for
-  other device addresses are ignored, as on a shared RS-485 line.
+  other device addresses are ignored, as on a shared RS-485 line. Several devices can share one line
+  (:class:`RtuBus`): the client's requests reach all of them and each answers its own address.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -63,6 +65,55 @@ class RtuTransport:
         LineTime(baudrate=self.baudrate)  # checks the rate
 
 
+class RtuBus:
+    """One RS-485 line: the port clients open (a stable link path) and the RTU devices on it.
+
+    What a client writes reaches every device on the line, each through its own line-time bridge; each
+    answers only requests for its own address, and every answer crosses the one line back. A device given
+    a plain link path gets a line of its own. Lives in the device loop; the port opens when the first
+    device joins and closes when the last one leaves.
+    """
+
+    def __init__(self, link_path: Path, transport: RtuTransport) -> None:
+        self.link_path = Path(link_path)
+        self.transport = transport
+        self._members: list[Callable[[bytes], None]] = []
+        self._client: PtyPort | None = None
+        self._to_client: LineWriter | None = None
+
+    @property
+    def line(self) -> LineTime | None:
+        t = self.transport
+        return LineTime(baudrate=t.baudrate) if t.simulate_line_time else None
+
+    @property
+    def client_pty(self) -> PtyPort | None:
+        """The clients' side of the line (``None`` while no device is on it)."""
+        return self._client
+
+    def join(self, loop: asyncio.AbstractEventLoop, to_device: Callable[[bytes], None]) -> Callable[[bytes], None]:
+        """Put a device on the line: ``to_device`` gets what clients write; returns where its answers go."""
+        if self._client is None:
+            self._client = PtyPort(self.link_path)
+            self._to_client = LineWriter(loop, self._client, self.line)
+            self._client.attach(loop, self._from_client)
+        self._members.append(to_device)
+        assert self._to_client is not None
+        return self._to_client.send
+
+    def leave(self, to_device: Callable[[bytes], None]) -> None:
+        """Take a device off the line; the last one closes the port."""
+        if to_device in self._members:
+            self._members.remove(to_device)
+        if not self._members and self._client is not None:
+            self._client.close()
+            self._client = self._to_client = None
+
+    def _from_client(self, data: bytes) -> None:
+        for send in list(self._members):
+            send(data)
+
+
 class ModbusDevice:
     """Base of the simulated Modbus devices: one pymodbus server, its transport and its faults.
 
@@ -73,18 +124,23 @@ class ModbusDevice:
     kind = "modbus device"
 
     def __init__(self, *, name: str, transport: TcpTransport | RtuTransport, device_id: int,
-                 serial_link: Path | None = None, faults: Faults | None = None) -> None:
-        if isinstance(transport, RtuTransport) and serial_link is None:
-            raise ValueError(f"{name}: a Modbus RTU device needs serial_link (the path clients open)")
+                 serial_link: Path | RtuBus | None = None, faults: Faults | None = None) -> None:
+        self._bus: RtuBus | None = None
+        if isinstance(transport, RtuTransport):
+            if serial_link is None:
+                raise ValueError(f"{name}: a Modbus RTU device needs serial_link (the path clients open, or an "
+                                 "RtuBus shared with other devices)")
+            self._bus = serial_link if isinstance(serial_link, RtuBus) else RtuBus(serial_link, transport)
+            if self._bus.transport != transport:
+                raise ValueError(f"{name}: its transport {transport} differs from its line's {self._bus.transport}")
         self.name = name
         self.transport = transport
         self.device_id = device_id
         self.faults = faults if faults is not None else Faults()
-        self._serial_link = serial_link
         self._server: ModbusBaseServer | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._server_pty: PtyPort | None = None
-        self._client_pty: PtyPort | None = None
+        self._to_server: Callable[[bytes], None] | None = None  # while on its line
         self._bound: tuple[str, int] | None = None
 
     # -- what subclasses provide ------------------------------------------------------------------------
@@ -108,17 +164,23 @@ class ModbusDevice:
     @property
     def serial_port(self) -> str:
         """The path an RTU client opens (a stable link to the current pseudo-terminal)."""
-        if self._client_pty is None:
+        client = self._client_pty
+        if client is None:
             raise RuntimeError(f"{self.name}: not a running RTU device")
-        return self._client_pty.path
+        return client.path
+
+    @property
+    def _client_pty(self) -> PtyPort | None:
+        return self._bus.client_pty if self._bus is not None and self._to_server is not None else None
 
     @property
     def endpoint(self) -> str:
         """Where clients find the device, for people: ``modbus-tcp://127.0.0.1:5020`` or ``modbus-rtu:...``."""
         if self._bound is not None:
             return f"modbus-tcp://{self._bound[0]}:{self._bound[1]} (unit id any)"
-        if self._client_pty is not None and isinstance(self.transport, RtuTransport):
-            return (f"modbus-rtu:{self._client_pty.path} (device id {self.device_id}, "
+        client = self._client_pty
+        if client is not None and isinstance(self.transport, RtuTransport):
+            return (f"modbus-rtu:{client.path} (device id {self.device_id}, "
                     f"{self.transport.baudrate} baud 8N1)")
         return "not running"
 
@@ -138,13 +200,10 @@ class ModbusDevice:
             sock = server.transport.sockets[0]  # type: ignore[union-attr]
             self._bound = (self.transport.host, int(sock.getsockname()[1]))
         else:
+            assert self._bus is not None
             self._server_pty = PtyPort(None)
-            self._client_pty = PtyPort(self._serial_link)
-            line = LineTime(baudrate=self.transport.baudrate) if self.transport.simulate_line_time else None
-            to_server = LineWriter(self._loop, self._server_pty, line)
-            to_client = LineWriter(self._loop, self._client_pty, line)
-            self._server_pty.attach(self._loop, to_client.send)
-            self._client_pty.attach(self._loop, to_server.send)
+            self._to_server = LineWriter(self._loop, self._server_pty, self._bus.line).send
+            self._server_pty.attach(self._loop, self._bus.join(self._loop, self._to_server))
             server = ModbusSerialServer(
                 self._sim_device(), framer=FramerType.RTU, port=self._server_pty.tty_path,
                 baudrate=self.transport.baudrate, reconnect_delay=0.1, **common)
@@ -169,10 +228,11 @@ class ModbusDevice:
         self._bound = None
 
     def _close_ptys(self) -> None:
-        for pty in (self._server_pty, self._client_pty):
-            if pty is not None:
-                pty.close()
-        self._server_pty = self._client_pty = None
+        if self._bus is not None and self._to_server is not None:
+            self._bus.leave(self._to_server)
+        if self._server_pty is not None:
+            self._server_pty.close()
+        self._server_pty = self._to_server = None
 
     def disconnect_clients(self) -> None:
         """Drop every client (callable from any thread).
@@ -187,8 +247,9 @@ class ModbusDevice:
 
     def _disconnect(self) -> None:
         self.faults.note("disconnected")
-        if self._client_pty is not None:
-            self._client_pty.hang_up()
+        client = self._client_pty
+        if client is not None:
+            client.hang_up()  # the whole line: every device on it loses the client
             return
         assert self._server is not None
         for conn in list(self._server.active_connections.values()):
