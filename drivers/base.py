@@ -23,7 +23,7 @@ import enum
 import math
 import struct
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -42,11 +42,16 @@ class Quality(enum.IntEnum):
 
 @dataclass(frozen=True, slots=True)
 class Reading:
-    """One read of a device: clock time of the request, one value and one quality per channel."""
+    """One read of a device: clock time of the request, one value and one quality per channel.
+
+    ``errors``: what went wrong without failing the read (a silent unit on a shared line: its channels are
+    ``BAD`` and the line's other units were read); the runner reports them like a failed read's message.
+    """
 
     t_s: float
     values: tuple[float, ...]
     quality: tuple[Quality, ...]
+    errors: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -132,6 +137,8 @@ class Driver(abc.ABC):
         self.clock: Clock = clock if clock is not None else RealClock()
         self._is_open = False
         self._closed = False
+        #: problems of the current scan that do not fail it; ``_read_raw`` appends, :meth:`read` reports
+        self.scan_errors: list[str] = []
 
     # -- what the profile loader calls -------------------------------------------------------------------
     @classmethod
@@ -188,6 +195,7 @@ class Driver(abc.ABC):
         if not self._is_open:
             self.open()
         t = self.clock.now()
+        self.scan_errors = []
         try:
             values, quality = self._read_raw()
         except DriverError:
@@ -199,7 +207,7 @@ class Driver(abc.ABC):
         except Exception as exc:
             self._drop()
             raise DriverError(f'device "{self.name}" ({self.kind}): read failed: {_describe(exc)}') from exc
-        return Reading(t_s=t, values=tuple(values), quality=tuple(quality))
+        return Reading(t_s=t, values=tuple(values), quality=tuple(quality), errors=tuple(self.scan_errors))
 
     def close(self) -> None:
         """Close the transport (idempotent); the driver cannot be opened again."""
@@ -225,6 +233,56 @@ class Driver(abc.ABC):
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, channels={list(self.channel_names)})"
+
+
+class SharedLine:
+    """Per-unit off-scan for the units (boards, modules) that share one serial line.
+
+    :meth:`scan` asks every unit in turn. A unit that fails while another one answers in the same scan has
+    its channels cleared (``BAD``) and is not asked again for ``backoff_s``, doubling per failure up to
+    ``backoff_max_s`` (clock time): a silent board does not cost the line a timeout every scan, and the
+    other boards are read on. Every scan notes why a unit is missing in the driver's ``scan_errors``. When
+    no unit answers, the line itself is down: the first failure is raised and the driver fails as a whole.
+    """
+
+    def __init__(self, driver: Driver) -> None:
+        self._driver = driver
+        self._retry: dict[Any, float] = {}
+        self._failures: dict[Any, int] = {}
+        self._why: dict[Any, str] = {}
+
+    def scan(self, units: Sequence[Any], read: Callable[[Any], None], clear: Callable[[Any], None],
+             label: Callable[[Any], str]) -> None:
+        """Ask every unit once (see the class docstring).
+
+        ``read(unit)`` reads a unit's channels (raising :class:`DriverError`), ``clear(unit)`` resets them to
+        ``BAD``, ``label(unit)`` names it (``unit 5``, ``module 03``).
+        """
+        driver = self._driver
+        now = driver.clock.now()
+        answered = 0
+        failed: list[tuple[Any, DriverError]] = []
+        for unit in units:
+            if now < self._retry.get(unit, -math.inf):
+                driver.scan_errors.append(f"{label(unit)} off-scan: {self._why[unit]}")
+                continue
+            try:
+                read(unit)
+            except DriverError as exc:
+                failed.append((unit, exc))
+                clear(unit)  # what it answered before failing is not kept
+                continue
+            answered += 1
+            self._failures.pop(unit, None)
+            self._retry.pop(unit, None)
+        if failed and not answered:
+            raise failed[0][1]
+        opt = driver.options
+        for unit, exc in failed:
+            n = self._failures[unit] = self._failures.get(unit, 0) + 1
+            self._retry[unit] = now + min(opt.backoff_s * 2.0 ** min(n - 1, 30), opt.backoff_max_s)
+            self._why[unit] = str(exc)
+            driver.scan_errors.append(f"{exc} ({label(unit)} off-scan; the line's other units are read on)")
 
 
 def _describe(exc: BaseException) -> str:

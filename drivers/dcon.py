@@ -12,7 +12,9 @@ e.g. a 0..10 V input for 0..15000 rpm has ``scale = 1500``.
 
 Quality: a value printed as all nines (``+99.999``) does not fit the module's format: ``SATURATED``. An
 answer that is malformed or fails its checksum makes that module's values ``BAD`` for this scan (counted
-in ``bad_answers``); no answer within ``timeout_s`` is a device timeout.
+in ``bad_answers``). A module that does not answer within ``timeout_s`` while another one does is taken
+off-scan on its own (:class:`drivers.base.SharedLine`); when no module answers, the line has failed: a
+device timeout.
 
 Link budget at 9600 baud 8N1: ``#01`` and its 8-input answer are 62 characters, 65 ms, per module.
 """
@@ -28,7 +30,7 @@ from typing import Any, ClassVar
 
 import serial
 
-from drivers.base import DeviceOptions, Driver, LinkBudget, Quality, parse_common_options, serial_char_s
+from drivers.base import DeviceOptions, Driver, LinkBudget, Quality, SharedLine, parse_common_options, serial_char_s
 from gateway.errors import DeviceTimeout
 
 BAUDRATES = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)
@@ -73,6 +75,7 @@ class DconDriver(Driver):
         for i, a in enumerate(self.addresses):
             self._modules.setdefault(a.module, []).append(i)
         self._serial: serial.Serial | None = None
+        self._line = SharedLine(self)
         #: answers rejected for a bad format or checksum
         self.bad_answers = 0
 
@@ -134,17 +137,28 @@ class DconDriver(Driver):
         assert port is not None
         values = [math.nan] * len(self.addresses)
         quality = [Quality.BAD] * len(self.addresses)
-        for module, members in self._modules.items():
+
+        def read(module: int) -> None:
             readings = self._ask(port, module)
             if readings is None:
-                continue
-            for i in members:
+                return  # malformed: this module's values stay BAD for this scan (counted)
+            for i in self._modules[module]:
                 a = self.addresses[i]
                 if a.input >= len(readings):
                     continue  # the module has fewer inputs than the profile says: BAD
                 text, number = readings[a.input]
                 values[i] = number * a.scale + a.offset
                 quality[i] = Quality.SATURATED if set(text[1:]) <= {"9", "."} else Quality.GOOD
+
+        def clear(module: int) -> None:
+            for i in self._modules[module]:
+                values[i], quality[i] = math.nan, Quality.BAD
+
+        if len(self._modules) > 1:  # a silent module goes off-scan alone (see SharedLine)
+            self._line.scan(list(self._modules), read, clear, lambda m: f"module {m:02X}")
+        else:
+            for module in self._modules:
+                read(module)
         return values, quality
 
     def _ask(self, port: serial.Serial, module: int) -> list[tuple[str, float]] | None:

@@ -9,9 +9,10 @@ the protocol's limit), so eight int16 inputs on registers 0..7 cost one round tr
 
 Several units behind one device (an RS-485 line with several Modbus RTU boards, or a Modbus TCP gateway in
 front of them): a channel's ``unit_id`` names its unit (default: the device's ``unit_id``); requests are
-planned per unit and a scan reads every unit in turn. The device is the line: a unit that does not answer
-fails the scan like any device timeout (the message names the unit), and the runner takes the line
-off-scan, as a real RS-485 master's silent slave costs the whole line a timeout anyway. A raw value at the
+planned per unit and a scan reads every unit in turn. A unit that stops answering while the others answer
+is taken off-scan on its own (its channels ``BAD``, the reason in ``Reading.errors``, retried after a
+doubling back-off) and the line reads on; when no unit answers, the line is down and the scan fails like
+any device's. A raw value at the
 limit of an integer type is flagged ``SATURATED`` (a converter at over-range sits there); a NaN float is
 ``BAD``. pymodbus clients are not thread-safe: a driver and its client belong to the one thread that
 samples the device.
@@ -25,7 +26,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from drivers.base import Driver, Quality, unpack_words
+from drivers.base import Driver, Quality, SharedLine, unpack_words
 from gateway.errors import DeviceTimeout, DriverError
 
 DATA_TYPES = ("int16", "uint16", "int32", "uint32", "float32")
@@ -162,6 +163,7 @@ class ModbusDriver(Driver):
         self.requests = plan_requests(self.addresses, self.options.unit_id)
         self._several_units = len({r.unit for r in self.requests}) > 1
         self._client: Any = None
+        self._line = SharedLine(self) if self._several_units else None
 
     def _make_client(self) -> Any:
         raise NotImplementedError
@@ -182,33 +184,50 @@ class ModbusDriver(Driver):
                 client.close()
 
     def _read_raw(self) -> tuple[list[float], list[Quality]]:
-        from pymodbus.exceptions import ModbusIOException
-
-        client = self._client
         values = [math.nan] * len(self.addresses)
         quality = [Quality.BAD] * len(self.addresses)
-        for req in self.requests:
-            call = client.read_input_registers if req.function == 4 else client.read_holding_registers
-            what = describe_request(req, with_unit=self._several_units)
-            try:
-                rr = call(req.start, count=req.count, device_id=req.unit)
-            except ModbusIOException as exc:
-                opt = self.options
-                raise DeviceTimeout(
-                    f'device "{self.name}" ({self.kind}): no valid answer to {what} within {opt.timeout_s:g} s x '
-                    f"{opt.retries + 1} attempt{'s' if opt.retries else ''}: {exc}") from exc
-            if rr.isError():
-                code = getattr(rr, "exception_code", None)
-                raise DriverError(f'device "{self.name}" ({self.kind}): {what} answered with exception {code} '
-                                  f"({_EXCEPTIONS.get(code, 'unknown')})")
-            regs = rr.registers
-            if len(regs) < req.count:
-                raise DriverError(f'device "{self.name}" ({self.kind}): {what}: '
-                                  f"expected {req.count} registers, got {len(regs)}")
-            for i, first in req.members:
-                a = self.addresses[i]
-                values[i], quality[i] = a.decode(regs[first:first + a.n_registers])
+        if self._line is None:
+            for req in self.requests:
+                self._read_request(req, values, quality)
+            return values, quality
+
+        def read(unit: int) -> None:
+            for req in self.requests:
+                if req.unit == unit:
+                    self._read_request(req, values, quality)
+
+        def clear(unit: int) -> None:
+            for req in self.requests:
+                if req.unit == unit:
+                    for i, _ in req.members:
+                        values[i], quality[i] = math.nan, Quality.BAD
+
+        self._line.scan(list(dict.fromkeys(r.unit for r in self.requests)), read, clear, lambda u: f"unit {u}")
         return values, quality
+
+    def _read_request(self, req: Request, values: list[float], quality: list[Quality]) -> None:
+        from pymodbus.exceptions import ModbusIOException
+
+        call = self._client.read_input_registers if req.function == 4 else self._client.read_holding_registers
+        what = describe_request(req, with_unit=self._several_units)
+        try:
+            rr = call(req.start, count=req.count, device_id=req.unit)
+        except ModbusIOException as exc:
+            opt = self.options
+            raise DeviceTimeout(
+                f'device "{self.name}" ({self.kind}): no valid answer to {what} within {opt.timeout_s:g} s x '
+                f"{opt.retries + 1} attempt{'s' if opt.retries else ''}: {exc}") from exc
+        if rr.isError():
+            code = getattr(rr, "exception_code", None)
+            raise DriverError(f'device "{self.name}" ({self.kind}): {what} answered with exception {code} '
+                              f"({_EXCEPTIONS.get(code, 'unknown')})")
+        regs = rr.registers
+        if len(regs) < req.count:
+            raise DriverError(f'device "{self.name}" ({self.kind}): {what}: '
+                              f"expected {req.count} registers, got {len(regs)}")
+        for i, first in req.members:
+            a = self.addresses[i]
+            values[i], quality[i] = a.decode(regs[first:first + a.n_registers])
 
 
 _EXCEPTIONS = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",

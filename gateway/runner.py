@@ -53,7 +53,7 @@ class RunnerCounters:
 
     @property
     def in_error(self) -> bool:
-        return bool(self.reads_failed or self.connects_failed or self.off_scan_ticks)
+        return bool(self.reads_failed or self.connects_failed or self.off_scan_ticks or self.errors)
 
 
 class DeviceRunner:
@@ -126,6 +126,9 @@ class DeviceRunner:
         c = self.counters
         c.reads_ok += 1
         self.total.reads_ok += 1
+        for message in reading.errors:  # a read that worked in part (a silent unit on a shared line)
+            c.note_error(message)
+            self.total.note_error(message)
         if elapsed > c.read_time_max_s:
             c.read_time_max_s = elapsed
         if self._failures:

@@ -182,7 +182,8 @@ class DeviceQuality:
 
     @property
     def in_error(self) -> bool:
-        return not self.reported or bool(self.reads_failed or self.off_scan_ticks)
+        """Not handed in, a read failed, off-scan, or any error noted (a silent unit on a shared line)."""
+        return not self.reported or bool(self.reads_failed or self.off_scan_ticks or self.errors)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -81,3 +81,31 @@ def test_a_silent_module_times_out_naming_the_device_and_the_module(line, tmp_pa
     command = "#0184" if checksum else "#01"
     assert str(err.value) == (f'device "dcon" (DCON {devices.dcon.serial_port}): module 01 did not answer '
                               f"'{command}' within 0.2 s")
+
+
+def test_a_dead_module_goes_off_scan_alone_and_the_other_is_read_on(line, tmp_path):
+    source, clock, devices, _ = line
+    profile = live_profile(devices, tmp_path, via="dcon", device_keys={"timeout_s": 0.2, "backoff_s": 2.0})
+    devices.dcon.silent_modules.add(0x02)  # the currents' module dies
+    driver = make_driver(profile, "dcon", clock)
+    with driver:
+        reading = driver.read()
+        names = driver.channel_names
+        good = {n for n, q in zip(names, reading.quality, strict=True) if q == Quality.GOOD}
+        assert good == {"spindle_speed", "spindle_i1", "spindle_i2", "x_velocity", "y_velocity", "z_velocity"}
+        want = source.values(reading.t_s)
+        for n, v in zip(names, reading.values, strict=True):
+            if n in good:
+                assert v == pytest.approx(want[n], abs=RESOLUTION[n]), n
+        assert len(reading.errors) == 1
+        assert "module 02 did not answer" in reading.errors[0]
+        assert reading.errors[0].endswith("(module 02 off-scan; the line's other units are read on)")
+        clock.advance(1.0)  # within its back-off: not asked
+        asked = devices.dcon.faults.counts["dropped"]
+        assert driver.read().errors[0].startswith("module 02 off-scan: ")
+        assert devices.dcon.faults.counts["dropped"] == asked
+        devices.dcon.silent_modules.clear()
+        clock.advance(1.5)
+        back = driver.read()
+    assert set(back.quality) == {Quality.GOOD}
+    assert back.errors == ()

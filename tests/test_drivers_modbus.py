@@ -210,9 +210,10 @@ def test_tcp_disconnect_is_one_failed_read_then_a_reconnect(board, tmp_path):
     assert runner.total.reads_ok >= 3
 
 
-def test_several_boards_on_one_rs485_line_are_one_device_whose_channels_name_their_unit(tmp_path):
-    # two simulated boards share one pseudo-terminal line (each answers its own address); the gateway
-    # opens the port once and reads unit 1 (the device's), then unit 5
+@pytest.fixture
+def line(tmp_path):
+    """Two simulated boards sharing one pseudo-terminal line (each answers its own address) and a profile
+    whose one RTU device reads unit 1 (the device's) and unit 5; clock at 50 s."""
     clock = ManualClock(50.0)
     source = WaveSource()
     second = AdcBoardConfig(device_id=5, channels=(
@@ -220,8 +221,6 @@ def test_several_boards_on_one_rs485_line_are_one_device_whose_channels_name_the
         RegisterChannel(channel="z_current", address=2, encoding="float32")))
     config = DeviceSetConfig(adc_tcp_port=None, adc_rtu_more=(second,), can=None, dcon=None, cnc=None)
     with serve(source, clock, config) as devices:
-        assert devices.adc_rtu_more[0].serial_port == devices.adc_rtu.serial_port
-        assert "adc-rtu-5" in devices.describe()
         path = tmp_path / "line.toml"
         path.write_text(f"""
 [machine]
@@ -250,27 +249,67 @@ address = 2
 data_type = "float32"
 unit_id = 5
 """)
-        profile = load_profile(path)
-        driver = make_driver(profile, "rs485", clock)
-        with driver:
-            assert describe_requests(driver.requests) == "2 requests (unit 1 fc4 100..101, unit 5 fc4 0..3)"
-            reading = driver.read()
-            want = source.values(reading.t_s)
-            assert reading.quality == (Quality.GOOD,) * 3
-            for name, value in zip(driver.channel_names, reading.values, strict=True):
-                assert value == pytest.approx(want[name], rel=1e-6), name
-            # the second board stops answering: the scan fails naming its unit, the line is one device
-            devices.adc_rtu_more[0].faults.drop_replies = True
-            with pytest.raises(DeviceTimeout) as err:
-                driver.read()
-            assert str(err.value).startswith('device "rs485" (Modbus RTU): no valid answer to unit 5 fc4 0..3 '
-                                             "within 0.2 s x 1 attempt: ")
-            devices.adc_rtu_more[0].faults.drop_replies = False
-            clock.advance(3.0)
-            again = driver.read()  # reopens the line and reads both boards again
-        assert again.values != reading.values
-        assert devices.adc_rtu.faults.counts.get("dropped", 0) == 0
-        assert devices.adc_rtu_more[0].faults.counts["dropped"] >= 1
+        yield source, clock, devices, load_profile(path)
+
+
+def test_several_boards_on_one_rs485_line_are_one_device_whose_channels_name_their_unit(line):
+    # the gateway opens the port once and reads unit 1, then unit 5
+    source, clock, devices, profile = line
+    assert devices.adc_rtu_more[0].serial_port == devices.adc_rtu.serial_port
+    assert "adc-rtu-5" in devices.describe()
+    driver = make_driver(profile, "rs485", clock)
+    with driver:
+        assert describe_requests(driver.requests) == "2 requests (unit 1 fc4 100..101, unit 5 fc4 0..3)"
+        reading = driver.read()
+        want = source.values(reading.t_s)
+        assert reading.quality == (Quality.GOOD,) * 3
+        for name, value in zip(driver.channel_names, reading.values, strict=True):
+            assert value == pytest.approx(want[name], rel=1e-6), name
+        # the second board stops answering: it goes off-scan alone, the first one is read on
+        devices.adc_rtu_more[0].faults.drop_replies = True
+        clock.advance(1.0)
+        partial = driver.read()
+        assert partial.quality == (Quality.GOOD, Quality.BAD, Quality.BAD)
+        assert partial.values[0] == pytest.approx(source.values(partial.t_s)["spindle_speed"], rel=1e-6)
+        assert len(partial.errors) == 1
+        assert partial.errors[0].startswith('device "rs485" (Modbus RTU): no valid answer to unit 5 fc4 0..3 '
+                                            "within 0.2 s x 1 attempt: ")
+        assert partial.errors[0].endswith("(unit 5 off-scan; the line's other units are read on)")
+        dropped = devices.adc_rtu_more[0].faults.counts["dropped"]
+        clock.advance(0.5)  # within backoff_s (1 s): not asked, no timeout spent on it
+        skipped = driver.read()
+        assert skipped.quality == partial.quality
+        assert skipped.errors == (f"unit 5 off-scan: {partial.errors[0].split(' (unit 5')[0]}",)
+        assert devices.adc_rtu_more[0].faults.counts["dropped"] == dropped
+        devices.adc_rtu_more[0].faults.drop_replies = False
+        clock.advance(1.0)
+        again = driver.read()  # its back-off is over: asked again, and it answers
+        assert again.quality == (Quality.GOOD,) * 3
+        assert again.errors == ()
+        # the whole line silent: that is the device failing, as any device does
+        devices.adc_rtu.faults.drop_replies = devices.adc_rtu_more[0].faults.drop_replies = True
+        with pytest.raises(DeviceTimeout, match=r"no valid answer to unit 1 fc4 100..101"):
+            driver.read()
+    assert again.values != reading.values
+
+
+def test_a_silent_unit_is_reported_in_the_window_while_the_device_reads_on(line):
+    _, clock, devices, profile = line
+    runner = DeviceRunner(device=profile.device("rs485"), channels=profile.channels_of("rs485"), clock=clock)
+    try:
+        assert runner.poll() is not None
+        devices.adc_rtu_more[0].faults.drop_replies = True
+        clock.advance(1.0)
+        reading = runner.poll()
+        state = runner.state
+    finally:
+        runner.close()
+    assert reading is not None
+    assert reading.quality[0] == Quality.GOOD
+    c = runner.take_counters()
+    assert (c.reads_ok, c.reads_failed, state) == (2, 0, "on_scan")
+    assert c.in_error  # the window will list the line among the devices in error, with the reason
+    assert c.errors[0].startswith('device "rs485" (Modbus RTU): no valid answer to unit 5 fc4 0..3')
 
 
 def test_boards_on_one_line_need_distinct_addresses():

@@ -173,6 +173,8 @@ class DconLine:
         self.name = name
         self.config = config
         self.faults = faults if faults is not None else Faults()
+        #: addresses of modules that have died on the line: they answer nothing (the others still do)
+        self.silent_modules: set[int] = set()
         self._source = source
         self._clock = clock
         self._serial_link = serial_link
@@ -261,6 +263,9 @@ class DconLine:
         module = self._modules.get(command[1:3].upper())
         if module is None:
             return None  # another address: not ours to answer
+        if module.address in self.silent_modules:
+            self.faults.note("dropped")
+            return None
         if module.checksum:
             body, given = command[:-2], command[-2:]
             if len(command) < 5 or given.upper() != checksum(body):
