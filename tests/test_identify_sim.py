@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from tests_paths import PROFILES
@@ -16,11 +18,29 @@ IDENTIFICATION = ("spindle-1000rpm", "spindle-500rpm", "spindle-400-600rpm", "fe
 
 
 @pytest.fixture(scope="module")
-def identified():
+def train():
+    return [simulate(load_scenario(n)).recording() for n in IDENTIFICATION]
+
+
+@pytest.fixture(scope="module")
+def identified(train):
     profile = load_profile(PROFILES / "sim-vmc.toml")
-    train = [simulate(load_scenario(n)).recording() for n in IDENTIFICATION]
     return profile, identify(train, factors=profile.factor_names, axes=profile.axes,
                              units={f.name: f.unit for f in profile.factors})
+
+
+def test_axes_fitted_in_parallel_processes_give_the_same_model(identified, train):
+    profile, serial = identified
+    seen = []
+    parallel = identify(train, factors=profile.factor_names, axes=profile.axes,
+                        units={f.name: f.unit for f in profile.factors}, jobs=2, progress=seen.append)
+    assert parallel.model.paths == serial.model.paths
+    def untimed(report):  # the axis lines end with their wall time
+        return [re.sub(r"; [0-9.]+ s$", "", line) for line in report]
+
+    assert untimed(parallel.report) == untimed(serial.report)
+    assert sorted(seen) == sorted(f"axis {a}: {c}" for a in profile.axes
+                                  for c in ("first_order", "second_order", "two_modes"))
 
 
 @pytest.mark.parametrize("run", ["random-spindle", "spindle-feeds"])

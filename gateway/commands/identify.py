@@ -31,6 +31,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-prune", action="store_true", help="joint method: keep paths whose gain is not significant")
     p.add_argument("--max-iter", type=positive_int, default=3000, metavar="N",
                    help="paper method: steepest-descent iterations per path (default 3000)")
+    p.add_argument("--jobs", type=positive_int, default=1, metavar="N",
+                   help="joint method: fit the axes in N processes at once (default 1; keep 1 on a PC whose "
+                        "gateway is sampling)")
     p.add_argument("--plot", metavar="PNG", help="also draw measured vs fitted displacement of every experiment")
     add_recording_options(p)
     p.set_defaults(func=run)
@@ -56,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
         result = identify(recs, factors=profile.factor_names, axes=profile.axes,
                           units={f.name: f.unit for f in profile.factors}, machine=profile.name,
                           method=args.method, candidates=structures, prune=not args.no_prune,
-                          gap_policy=args.gap_policy, paper_max_iter=args.max_iter,
+                          gap_policy=args.gap_policy, paper_max_iter=args.max_iter, jobs=args.jobs,
                           progress=lambda m: None if "pruning" in m else update(m))
     finally:
         close()

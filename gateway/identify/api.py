@@ -49,12 +49,16 @@ def identify(
     gap_policy: str = "hold",
     paper_max_iter: int = 3000,
     progress: Callable[[str], None] | None = None,
+    jobs: int = 1,
 ) -> IdentifyResult:
     """Identify a model from experiment recordings.
 
     Each recording is one experiment that starts with the machine in thermal equilibrium (after a long
     idle, powered): its first window defines the experiment's initial state. The model's ``reference``
     is the mean of those initial factor levels, for live use.
+
+    ``jobs`` > 1 (joint method): the axes are fitted in that many processes at once (forked, where the
+    platform forks); the model is the same as with one. Leave it at 1 on a PC whose gateway is sampling.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}. Got {method!r}")
@@ -63,7 +67,7 @@ def identify(
     with threadpool_limits(limits=1, user_api="blas"):
         return _identify(recordings, factors=factors, axes=axes, units=units, machine=machine, method=method,
                          candidates=candidates, prune=prune, gap_policy=gap_policy, paper_max_iter=paper_max_iter,
-                         progress=progress)
+                         progress=progress, jobs=jobs)
 
 
 def _identify(
@@ -79,6 +83,7 @@ def _identify(
     gap_policy: str,
     paper_max_iter: int,
     progress: Callable[[str], None] | None,
+    jobs: int,
 ) -> IdentifyResult:
     t0 = time.perf_counter()
     notes: list[str] = []
@@ -110,8 +115,8 @@ def _identify(
         "identified_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"), "cncgw_version": __version__,
     }
     if method == "joint":
-        for i in range(len(axes)):
-            sel = select_axis(es, i, active=list(active), candidates=candidates, prune=prune, progress=progress)
+        fit_axes = _select_axes_in_processes if jobs > 1 and len(axes) > 1 and _can_fork() else _select_axes
+        for i, sel in enumerate(fit_axes(es, list(active), candidates, prune, progress, jobs)):
             selections.append(sel)
             paths += sel.chosen.paths(factors)
             report += _axis_report(sel)
@@ -132,6 +137,43 @@ def _identify(
                          paths={(p.axis, p.factor): p for p in paths}, machine=machine, info=info)
     return IdentifyResult(model=model, method=method, experiments=es.names, wall_s=time.perf_counter() - t0,
                           report=report, selections=selections, notes=notes)
+
+
+def _select_axes(es: ExperimentSet, active: list[bool], candidates: Sequence[str], prune: bool,
+                 progress: Callable[[str], None] | None, jobs: int) -> list[AxisSelection]:
+    return [select_axis(es, i, active=active, candidates=candidates, prune=prune, progress=progress)
+            for i in range(len(es.axes))]
+
+
+def _select_axes_in_processes(es: ExperimentSet, active: list[bool], candidates: Sequence[str], prune: bool,
+                              progress: Callable[[str], None] | None, jobs: int) -> list[AxisSelection]:
+    """:func:`_select_axes` with the axes spread over ``jobs`` forked processes (progress per axis done)."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    out: list[AxisSelection | None] = [None] * len(es.axes)
+    with ProcessPoolExecutor(max_workers=min(jobs, len(es.axes)),
+                             mp_context=multiprocessing.get_context("fork")) as pool:
+        futures = {pool.submit(_select_one_axis, es, i, active, candidates, prune): i for i in range(len(es.axes))}
+        for future in as_completed(futures):
+            i = futures[future]
+            out[i] = future.result()
+            if progress:
+                for cand in candidates:
+                    progress(f"axis {es.axes[i]}: {cand}")
+    return [sel for sel in out if sel is not None]
+
+
+def _select_one_axis(es: ExperimentSet, i: int, active: list[bool], candidates: Sequence[str],
+                     prune: bool) -> AxisSelection:
+    with threadpool_limits(limits=1, user_api="blas"):
+        return select_axis(es, i, active=active, candidates=candidates, prune=prune)
+
+
+def _can_fork() -> bool:
+    import multiprocessing
+
+    return "fork" in multiprocessing.get_all_start_methods()
 
 
 def _structure_name(structures: Sequence[str]) -> str:
