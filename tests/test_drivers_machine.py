@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import pytest
@@ -10,6 +11,7 @@ from test_drivers_support import live_profile, make_driver
 from drivers.base import Quality
 from gateway.clock import ManualClock
 from simulators.devices import DeviceSetConfig, serve
+from simulators.devices.profile_out import rtu_line_boards
 from simulators.machine import LiveMachine
 
 # the coarsest step of each path: int16 counts (ADC), CAN scale, 1 mV of a DCON module
@@ -21,13 +23,18 @@ STEP = {"adc-tcp": {"spindle_speed": 0.47, "spindle_i1": 0.0032, "spindle_i2": 0
         "dcon": {"spindle_speed": 1.5, "spindle_i1": 0.01, "spindle_i2": 0.01, "x_velocity": 5.0, "y_velocity": 5.0,
                  "z_velocity": 5.0, "x_current": 0.005, "y_current": 0.005, "z_current": 0.005}}
 STEP["adc-rtu"] = STEP["adc-tcp"]
+STEP["adc-rtu-line"] = STEP["adc-tcp"]  # the currents' board sends float32: finer
 
 
-@pytest.mark.parametrize("via", ["adc-tcp", "adc-rtu", "can-slcan", "dcon"])
+@pytest.mark.parametrize("via", ["adc-tcp", "adc-rtu", "adc-rtu-line", "can-slcan", "dcon"])
 def test_each_driver_reads_the_machines_live_values(tmp_path, via):
     clock = ManualClock(61.5 * 60.0)  # spindle-feeds: spindle at 1000 rpm, X and Y reciprocating
     machine = LiveMachine("spindle-feeds", clock=clock)
-    with serve(machine, clock, DeviceSetConfig(cnc=None)) as devices:
+    config = DeviceSetConfig(cnc=None)
+    if via == "adc-rtu-line":  # two boards on one RS-485 line: the feed currents on the second
+        first, second = rtu_line_boards(config.adc)
+        config = dataclasses.replace(config, adc=first, adc_rtu_more=(second,))
+    with serve(machine, clock, config) as devices:
         profile = live_profile(devices, tmp_path, via=via)
         device = profile.devices[0]
         with make_driver(profile, device.name, clock) as driver:

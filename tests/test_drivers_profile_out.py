@@ -10,6 +10,7 @@ from gateway.profile import load_profile
 
 @pytest.mark.parametrize(("via", "driver", "period_s"), [("adc-tcp", "modbus_tcp", 0.002),
                                                          ("adc-rtu", "modbus_rtu", 0.01),
+                                                         ("adc-rtu-line", "modbus_rtu", 0.02),
                                                          ("can-slcan", "can", 0.01), ("dcon", "dcon", 0.2)])
 def test_profile_out_names_the_live_device(tmp_path, capsys, via, driver, period_s):
     out = tmp_path / "live.toml"
@@ -26,6 +27,10 @@ def test_profile_out_names_the_live_device(tmp_path, capsys, via, driver, period
     where = {"modbus_tcp": lambda: f"modbus-tcp://{o.host}:{o.port} ", "modbus_rtu": lambda: f"modbus-rtu:{o.port} ",
              "can": lambda: f"slcan:{o.channel} ", "dcon": lambda: f"dcon:{o.port} "}[driver]()
     assert where in printed  # the address written is the one served
+    units = {c.name: c.address.unit_id for c in profile.channels} if driver == "modbus_rtu" else {}
+    if via == "adc-rtu-line":  # the feed currents on the line's second board
+        assert units == {c: (2 if c.endswith("_current") else None) for c in units}
+        assert "adc-rtu-2" in printed
     assert profile.model_path.is_absolute()
 
 

@@ -173,7 +173,8 @@ class DeviceSet:
 
     def describe(self) -> str:
         """One line per device: name, kind, where clients find it."""
-        return "\n".join(f"{d.name:<8} {d.kind:<28} {d.endpoint}" for d in self.devices)
+        width = max((len(d.name) for d in self.devices), default=0)
+        return "\n".join(f"{d.name:<{width}} {d.kind:<28} {d.endpoint}" for d in self.devices)
 
 
 def serve(source: LiveSource, clock: Clock, config: DeviceSetConfig | None = None) -> DeviceSet:

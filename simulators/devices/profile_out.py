@@ -24,7 +24,10 @@ if TYPE_CHECKING:
     from simulators.devices.deviceset import DeviceSet
 
 BUNDLED_PROFILE = BUNDLED / "sim-vmc.toml"
-VIAS = ("adc-tcp", "adc-rtu", "can-slcan", "can-virtual", "dcon")
+VIAS = ("adc-tcp", "adc-rtu", "adc-rtu-line", "can-slcan", "can-virtual", "dcon")
+#: ``adc-rtu-line``: the feed axes' motor currents on a second board (this address) on the ADC's RS-485 line
+LINE_BOARD_ID = 2
+LINE_BOARD_CHANNELS = ("x_current", "y_current", "z_current")
 UNITS = {"spindle_speed": "rpm", "spindle_i1": "A", "spindle_i2": "A", "x_velocity": "mm/min",
          "y_velocity": "mm/min", "z_velocity": "mm/min", "x_current": "A", "y_current": "A", "z_current": "A",
          "x_um": "um", "y_um": "um", "z_um": "um"}
@@ -39,11 +42,24 @@ def adc_with_displacement(config: AdcBoardConfig) -> AdcBoardConfig:
     return dataclasses.replace(config, channels=(*config.channels, *extra))
 
 
+def rtu_line_boards(config: AdcBoardConfig) -> tuple[AdcBoardConfig, AdcBoardConfig]:
+    """``config`` split over two boards on one RS-485 line.
+
+    The feed axes' currents move to a second board (address :data:`LINE_BOARD_ID`, float32 from register 0);
+    everything else stays on the first.
+    """
+    first = tuple(ch for ch in config.channels if ch.channel not in LINE_BOARD_CHANNELS)
+    second = tuple(RegisterChannel(channel=name, address=2 * i, encoding="float32")
+                   for i, name in enumerate(LINE_BOARD_CHANNELS))
+    return (dataclasses.replace(config, channels=first),
+            AdcBoardConfig(channels=second, device_id=LINE_BOARD_ID))
+
+
 def _num(x: float) -> str:
     return repr(float(x))
 
 
-def _adc_channels(config: AdcBoardConfig, device: str) -> list[str]:
+def _adc_channels(config: AdcBoardConfig, device: str, unit_id: int | None = None) -> list[str]:
     out, seen = [], set()
     for ch in config.channels:
         if ch.channel in seen:
@@ -51,6 +67,8 @@ def _adc_channels(config: AdcBoardConfig, device: str) -> list[str]:
         seen.add(ch.channel)
         lines = [f"[channels.{ch.channel}]", f'device = "{device}"', f'unit = "{UNITS.get(ch.channel, "")}"',
                  f"address = {ch.address}", f'data_type = "{ch.encoding}"']
+        if unit_id is not None:
+            lines.append(f"unit_id = {unit_id}  # another board on the same line")
         if ch.word_order != "big":
             lines.append(f'word_order = "{ch.word_order}"')
         if ch.byte_order != "big":
@@ -68,7 +86,7 @@ def acquisition_toml(devices: DeviceSet, via: str) -> str:
     if via not in VIAS:
         raise ValueError(f"via must be one of {VIAS}. Got {via!r}")
     blocks: list[str] = []
-    if via in ("adc-tcp", "adc-rtu"):
+    if via.startswith("adc"):
         adc = devices.adc_tcp if via == "adc-tcp" else devices.adc_rtu
         if adc is None:
             raise ValueError(f"the device set serves no {via}")
@@ -79,10 +97,16 @@ def acquisition_toml(devices: DeviceSet, via: str) -> str:
         else:
             transport = devices.config.adc_rtu
             assert transport is not None
+            period = ("period_s = 0.02  # two boards, one request each, on one line" if via == "adc-rtu-line"
+                      else "period_s = 0.01  # the line and the client's turnaround do not allow 2 ms")
             head = ['[devices.adc]', 'driver = "modbus_rtu"', f'port = "{adc.serial_port}"',
-                    f"baudrate = {transport.baudrate}", f"unit_id = {adc.config.device_id}",
-                    "period_s = 0.01  # the line and the client's turnaround do not allow 2 ms", "timeout_s = 0.2"]
-        blocks = ["\n".join(head), *_adc_channels(adc.config, "adc")]
+                    f"baudrate = {transport.baudrate}", f"unit_id = {adc.config.device_id}", period,
+                    "timeout_s = 0.2"]
+        more = devices.adc_rtu_more if via == "adc-rtu-line" else []
+        if via == "adc-rtu-line" and not more:
+            raise ValueError("the device set serves no second board on the ADC's RS-485 line")
+        blocks = ["\n".join(head), *_adc_channels(adc.config, "adc"),
+                  *(b for board in more for b in _adc_channels(board.config, "adc", board.config.device_id))]
     elif via.startswith("can"):
         can = devices.can
         if can is None:
