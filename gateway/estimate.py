@@ -15,6 +15,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -25,6 +26,17 @@ from gateway.recording import Recording, format_recording
 ALIGN_CHOICES = ("start", "none", "offset")
 #: most windows of idle lead-in averaged for the measured zero
 LEAD_IN_MAX = 10
+
+
+def error_figures(err: np.ndarray, measured: np.ndarray) -> dict[str, Any]:
+    """Windows, RMS and max |error|, peak |measured| and max error as % of it (NaN without windows)."""
+    if not err.size:
+        return {"windows": 0, "rms_um": math.nan, "max_abs_error_um": math.nan, "peak_um": math.nan,
+                "max_error_pct_of_peak": math.nan}
+    peak = float(np.max(np.abs(measured)))
+    max_err = float(np.max(np.abs(err)))
+    return {"windows": int(err.size), "rms_um": float(np.sqrt(np.mean(err**2))), "max_abs_error_um": max_err,
+            "peak_um": peak, "max_error_pct_of_peak": 100.0 * max_err / peak if peak > 0 else math.inf}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -120,12 +132,7 @@ def estimate(
         else:
             offset = 0.0
         measured[i] -= offset
-        err = measured[i, ok] - est[i, ok]
-        peak = float(np.max(np.abs(measured[i, ok])))
-        max_err = float(np.max(np.abs(err)))
-        metrics[a] = AxisMetrics(axis=a, windows=int(ok.sum()), rms_um=float(np.sqrt(np.mean(err**2))),
-                                 max_abs_error_um=max_err, peak_um=peak,
-                                 max_error_pct_of_peak=100.0 * max_err / peak if peak > 0 else math.inf,
+        metrics[a] = AxisMetrics(axis=a, **error_figures(measured[i, ok] - est[i, ok], measured[i, ok]),
                                  offset_um=offset)
     return Estimate(recording=rec.source, axes=model.axes, time_s=prep.time_s, estimated=est,
                     measured=measured, present=prep.present, metrics=metrics, notes=tuple(notes),

@@ -42,6 +42,7 @@ from gateway.diagnose.locate import (
 )
 from gateway.diagnose.search import Options, SearchResult, search
 from gateway.diagnose.select import make_blocks
+from gateway.estimate import error_figures
 from gateway.model.model import ThermalModel
 from gateway.profile import Profile
 from gateway.recording import Recording
@@ -168,14 +169,7 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
 
 def _metrics(axis: str, err: np.ndarray, measured: np.ndarray) -> HeldMetrics:
     """Errors on the held-out windows; the peak is the measured displacement's (offset removed)."""
-    if not err.size:
-        return HeldMetrics(axis=axis, windows=0, rms_um=math.nan, max_abs_error_um=math.nan, peak_um=math.nan,
-                           max_error_pct_of_peak=math.nan)
-    peak = float(np.max(np.abs(measured)))
-    mx = float(np.max(np.abs(err)))
-    return HeldMetrics(axis=axis, windows=int(err.size), rms_um=float(np.sqrt(np.mean(err ** 2))),
-                       max_abs_error_um=mx, peak_um=peak,
-                       max_error_pct_of_peak=100 * mx / peak if peak > 0 else math.inf)
+    return HeldMetrics(axis=axis, **error_figures(err, measured))
 
 
 def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
