@@ -153,17 +153,28 @@ class CompensationWriter:
         self.synced = False
 
     def _run(self) -> None:
-        period_wall = self.settings.heartbeat_period_s / self.clock.speedup
         while not self._stop.is_set():
             try:
                 self.service()
             except Exception:  # a bug in one cycle must not stop the heartbeat for good
                 log.exception("compensation writer: cycle failed")
-            self._wake.wait(max(0.0, min(period_wall, self._until_beat_wall())))
+            self._wake.wait(self._idle_wall_s())
             self._wake.clear()
 
-    def _until_beat_wall(self) -> float:
-        return (self._next_beat_s - self.clock.now()) / self.clock.speedup
+    def _idle_wall_s(self) -> float:
+        """Wall seconds the thread may sleep before :meth:`service` has something to do (an update wakes it).
+
+        At most a heartbeat period (staleness and fault ramps are checked at that pace); less while a
+        beat is due sooner. Only a synced writer beats: a dry run, or a writer waiting to reconnect, sleeps
+        the whole period (or until the next connection attempt) instead of spinning on a beat that will
+        never be sent.
+        """
+        period = self.settings.heartbeat_period_s / self.clock.speedup
+        if not self.writing:
+            return period
+        if not self.synced:
+            return max(0.0, min(period, self._next_connect_wall - time.monotonic()))
+        return max(0.0, min(period, (self._next_beat_s - self.clock.now()) / self.clock.speedup))
 
     # -- one cycle ----------------------------------------------------------------------------------------
     def service(self) -> None:

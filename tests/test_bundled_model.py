@@ -4,33 +4,77 @@ To regenerate it (README, "The bundled model"):
     for s in spindle-1000rpm spindle-500rpm spindle-400-600rpm feed-x-fast feed-x-accel feed-y-fast \\
              feed-y-accel feed-z-fast feed-z-accel; do cncgw simulate record $s -o rec/; done
     cncgw identify --profile profiles/sim-vmc.toml rec/spindle-1000rpm.csv ... rec/feed-z-accel.csv
+
+Identification is a nonconvex fit: on another CPU (another BLAS kernel, another order of floating-point
+sums) it takes another path to a neighbouring optimum, so the digits of a gain are not what a user can
+rely on. What they can: the same structure per axis, every path's static gain within its stated
+uncertainty, and the same predicted displacement on runs the model did not train on, to well under the
+sensors' noise (0.1 um). CI runs this module a second time under another OpenBLAS kernel (dev.py).
 """
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from tests_paths import PROFILES
 
 from gateway.commands._common import load_model_for
+from gateway.estimate import estimate
 from gateway.identify import identify
 from gateway.profile import load_profile
 from simulators.machine import load_scenario, simulate
 
+pytestmark = pytest.mark.numeric
+
 EXPERIMENTS = ("spindle-1000rpm", "spindle-500rpm", "spindle-400-600rpm", "feed-x-fast", "feed-x-accel",
                "feed-y-fast", "feed-y-accel", "feed-z-fast", "feed-z-accel")
+HELD_OUT = ("random-spindle", "spindle-feeds")
+#: the displacement sensors' noise in the simulator: two fits of the same data may differ by a small
+#: share of it, never by a measurable amount
+NOISE_UM = 0.1
 
 
-def test_bundled_model_is_reproduced_by_identification():
+@pytest.fixture(scope="module")
+def models():
     profile = load_profile(PROFILES / "sim-vmc.toml")
     bundled, _ = load_model_for(profile, None)  # also checks it fits the profile
-    assert bundled.info["experiments"] == list(EXPERIMENTS)
     recs = [simulate(load_scenario(n)).recording() for n in EXPERIMENTS]
     again = identify(recs, factors=profile.factor_names, axes=profile.axes,
                      units={f.name: f.unit for f in profile.factors}, machine=profile.name).model
-    assert again.reference == bundled.reference
+    return bundled, again
+
+
+def test_bundled_model_names_its_experiments_and_reference(models):
+    bundled, again = models
+    assert bundled.info["experiments"] == list(EXPERIMENTS)
+    # the reference is a mean of recorded factor levels: arithmetic, not a fit
+    for f, v in bundled.reference.items():
+        assert again.reference[f] == pytest.approx(v, rel=1e-9, abs=1e-9), f
+
+
+def test_identification_chooses_the_bundled_structure_and_gains_within_their_uncertainty(models):
+    bundled, again = models
+    for a in bundled.axes:
+        assert again.info[f"axis_{a}"]["structure"] == bundled.info[f"axis_{a}"]["structure"], a
     for key, path in bundled.paths.items():
         other = again.paths[key]
-        assert other.kind == path.kind, key
-        for t_new, t_old in zip(other.terms, path.terms, strict=True):
-            assert t_new.gain == pytest.approx(t_old.gain, rel=1e-6, abs=1e-12), key
-            assert t_new.time_constants_s == pytest.approx(t_old.time_constants_s, rel=1e-6), key
+        sd = max(path.sd.get("gain", 0.0), other.sd.get("gain", 0.0))
+        if path.kind == "zero" or other.kind == "zero":
+            # a path pruned on one CPU and kept on another must be one whose gain is not significant
+            assert abs(path.gain - other.gain) <= 3.0 * sd or path.kind == other.kind, (key, path.gain, other.gain)
+            continue
+        assert sd > 0, key
+        assert abs(other.gain - path.gain) <= 2.0 * sd, (key, other.gain, path.gain, sd)
+
+
+@pytest.mark.parametrize("scenario", HELD_OUT)
+def test_reidentified_model_predicts_held_out_runs_like_the_bundled_one(models, scenario):
+    bundled, again = models
+    rec = simulate(load_scenario(scenario)).recording()
+    a, b = estimate(bundled, rec), estimate(again, rec)
+    for i, axis in enumerate(bundled.axes):
+        peak = float(np.max(np.abs(a.estimated[i])))
+        diff = float(np.max(np.abs(a.estimated[i] - b.estimated[i])))
+        assert diff <= max(0.2 * NOISE_UM, 0.01 * peak), (scenario, axis, diff, peak)
+        # and both are as good as each other against what was measured
+        assert b.metrics[axis].rms_um == pytest.approx(a.metrics[axis].rms_um, abs=0.2 * NOISE_UM), (scenario, axis)

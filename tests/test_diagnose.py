@@ -25,6 +25,8 @@ from gateway.model import FirstOrder, PathTF, ThermalModel, load_model, save_mod
 from gateway.profile import load_profile
 from gateway.recording import Recording
 
+pytestmark = pytest.mark.numeric
+
 ROOT = Path(__file__).resolve().parent.parent
 SIM_PROFILE = ROOT / "profiles" / "sim-vmc.toml"
 

@@ -37,6 +37,8 @@ INPUTS = (
     Same(name="i1_sq_delay900s", of="i1_sq"),
 )
 
+pytestmark = pytest.mark.numeric
+
 
 def extended_model() -> ThermalModel:
     paths = [

@@ -14,6 +14,8 @@ from gateway.model import FirstOrder, PathTF, SecondOrder, ThermalModel
 from gateway.prepare import prepare
 from gateway.synthetic import Segment, make_recording, schedule_inputs
 
+pytestmark = pytest.mark.numeric
+
 F = ("speed", "i1_sq", "i2_sq", "x_feed", "x_i_sq")
 IDLE = {"x_i_sq": 1.0}  # a holding current: present at rest, so deviations matter
 

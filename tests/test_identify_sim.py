@@ -13,6 +13,8 @@ from gateway.identify import identify
 from gateway.profile import load_profile
 from simulators.machine import load_scenario, simulate
 
+pytestmark = pytest.mark.numeric
+
 IDENTIFICATION = ("spindle-1000rpm", "spindle-500rpm", "spindle-400-600rpm", "feed-x-fast", "feed-x-accel",
                   "feed-y-fast", "feed-y-accel", "feed-z-fast", "feed-z-accel")
 

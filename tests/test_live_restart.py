@@ -26,6 +26,14 @@ from simulators.machine import LiveMachine
 MAX_STEP_UM = 5.0
 
 
+def audited(data_dir):
+    log = AuditLog(data_dir / AUDIT_NAME)
+    try:
+        return list(log.writes()), log.events()
+    finally:
+        log.close()
+
+
 def windows_logged(proc, n, timeout_s=60.0):
     """Read the child's JSON log until ``n`` window lines came; return them."""
     got = []
@@ -106,3 +114,36 @@ def test_kill_9_and_restart(tmp_path):
     syncs = [m for _, k, n, m in events if k == "sync"]
     assert len(syncs) == 2  # each start took over the offsets the CNC applied
     assert [k for _, k, n, _ in events if n == "gateway"] == ["start", "start", "stop"]  # the kill left no stop
+
+
+def test_dry_run_at_10x_keeps_every_window_good_and_never_touches_the_cnc(tmp_path):
+    """The README's first step on a real machine: `cncgw run` with compensation off.
+
+    The writer of a dry run has no heartbeat to send; it once woke without sleeping, took half a core and
+    starved the sampler (every window "insufficient", the estimate stuck at 0).
+    """
+    clock = ScaledClock(10.0, origin=35 * 60.0)  # 5 min into the 1000 rpm phase (from 30 min)
+    machine = LiveMachine("spindle-1000rpm", clock=clock)
+    config = DeviceSetConfig(adc_rtu=None, can=None, dcon=None)
+    data = tmp_path / "data"
+    with serve(machine, clock, config) as devices:
+        profile = live_profile(devices, tmp_path / "dry.toml", enabled=False, opcua_port=None)
+        cmd = [sys.executable, "-m", "gateway.cli", "run", "--profile", str(profile), "--data", str(data),
+               "--speedup", "10", "--no-opcua", "--log-format", "json"]
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        try:
+            windows = windows_logged(proc, 3, timeout_s=90.0)
+        finally:
+            stop(proc, signal.SIGTERM)
+        status = devices.cnc.update()
+    assert proc.returncode == 0
+    assert len(windows) == 3
+    # the first window is joined part-way; every whole one is good and nearly every tick was sampled
+    for w in windows[1:]:
+        assert w["status"] == "good", w
+        assert w["missed_ticks"] <= 0.02 * (w["samples"] + w["missed_ticks"]), w
+    assert windows[-1]["estimate_um"]["z"] != 0.0
+    assert status.applied_um == {"x": 0.0, "y": 0.0, "z": 0.0}
+    assert not status.enabled
+    writes, _ = audited(data)
+    assert {w.mode for w in writes} <= {"dry-run"}

@@ -21,6 +21,8 @@ from gateway.model import (
 )
 from gateway.model.model import paper_convolution
 
+pytestmark = pytest.mark.numeric
+
 FACTORS = ("speed", "i1_sq", "z_i_sq")
 
 
