@@ -21,7 +21,9 @@ from __future__ import annotations
 import abc
 import enum
 import math
+import statistics
 import struct
+import time
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -125,6 +127,9 @@ class Driver(abc.ABC):
 
     #: protocol, for people: "Modbus TCP"
     kind: ClassVar[str] = "device"
+    #: the link's speed is known only by trying it (a network, a server's own pace): the gateway times
+    #: whole scans with :meth:`measure_link` at start and refuses a period the link cannot hold
+    measured_link: ClassVar[bool] = False
 
     def __init__(self, *, name: str, options: Any, channels: Sequence[tuple[str, Any]],
                  clock: Clock | None = None) -> None:
@@ -155,6 +160,33 @@ class Driver(abc.ABC):
     def link_budget(cls, options: Any, addresses: Sequence[Any]) -> LinkBudget | None:
         """What the link can sustain for one scan of ``addresses``; ``None`` when it sets no limit."""
         return None
+
+    def measure_link(self, *, scans: int = 30) -> LinkBudget:
+        """Time ``scans`` whole scans on this (opened) link, wall time; the budget is their median.
+
+        The median, not a high percentile: a scan that now and then overruns its period costs a skipped
+        tick (counted in the window's quality), while a link whose typical scan does not fit the period
+        cannot hold it at all. The detail names the link (:meth:`_link_what`) and the spread seen.
+        """
+        if scans < 3:
+            raise ValueError(f"measure_link needs at least 3 scans. Got {scans}")
+        self.read()  # a first scan pays for connection set-up: not counted
+        times = []
+        for _ in range(scans):
+            t0 = time.perf_counter()
+            self.read()
+            times.append(time.perf_counter() - t0)
+        times.sort()
+        median = statistics.median(times)
+        p95 = times[min(len(times) - 1, math.ceil(0.95 * len(times)) - 1)]
+        return LinkBudget(min_period_s=median,
+                          detail=f"{self._link_what()}, measured at start over {scans} scans: median "
+                                 f"{median * 1000:.3g} ms, p95 {p95 * 1000:.3g} ms, "
+                                 f"max {times[-1] * 1000:.3g} ms a scan")
+
+    def _link_what(self) -> str:
+        """The link, for :meth:`measure_link`'s message (``Modbus TCP to 10.0.0.5:502, one scan is ...``)."""
+        return f"{self.kind} device {self.name!r}"
 
     # -- what protocols provide --------------------------------------------------------------------------
     @abc.abstractmethod

@@ -353,10 +353,10 @@ def _check_link_budgets(root: Table, devices: list[Device], channels: list[Chann
         whose = "" if own else " (sampling.fast_period_s)"
         root.doc.problem(path, f"a period of {d.period_s * 1000:g} ms{whose} is faster than the link can go: "
                                f"{budget.detail}, so it sustains at most {budget.max_rate_hz:.0f} Hz: set "
-                               f"devices.{d.name}.period_s >= {_round_up(budget.min_period_s)}")
+                               f"devices.{d.name}.period_s >= {round_up_period(budget.min_period_s)}")
 
 
-def _round_up(seconds: float) -> str:
+def round_up_period(seconds: float) -> str:
     """A period a little above ``seconds``, as a user would type it."""
     for step in (0.0001, 0.0005, 0.001, 0.005, 0.01, 0.05, 0.1, 0.5, 1.0):
         if seconds < 100 * step:

@@ -353,6 +353,8 @@ class Acquisition:
             channel_order=[c.name for c in profile.channels], sinks=sinks,
             grace_s=self._grace_s(profile), nominal_tick_s=s.fast_period_s)
         factories = driver_factories or {}
+        self._driver_factories = factories
+        self.link_checks: list[Any] = []  # what start() measured of the network links
         self.samplers: list[DeviceSampler] = []
         for d in profile.devices:
             channels = profile.channels_of(d.name)
@@ -380,6 +382,11 @@ class Acquisition:
             raise RuntimeError("with a ManualClock there is no wall time to tick on: use run_stepped()")
         if self._state != "new":
             raise RuntimeError(f"an acquisition starts once; this one is {self._state}")
+        from gateway.linkcheck import check_measured_links
+
+        # before any thread starts: a network link that cannot hold its period is refused (a bad profile)
+        self.link_checks = check_measured_links(self.profile, clock=self.clock,
+                                                driver_factories=self._driver_factories)
         self._state = "running"
         self.closer.start()
         try:
