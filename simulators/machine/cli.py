@@ -20,6 +20,10 @@ def add_actions(actions: argparse._SubParsersAction) -> None:
     rec.add_argument("scenario", metavar="SCENARIO", help="a bundled scenario's name or a scenario TOML file")
     rec.add_argument("-o", "--out", metavar="DIR", required=True, help="output directory (created if missing)")
     rec.add_argument("--seed", type=int, default=None, help="sensor-noise seed instead of the scenario's")
+    rec.add_argument("--variant", type=int, default=None, metavar="N",
+                     help="plant variant instead of the scenario's [plant] variant: 0 the nominal machine, N > 0 "
+                          "its gains and time constants perturbed by seed N (+-30 %%; `simulate list --variant N` "
+                          "shows them)")
     rec.add_argument("--no-progress", action="store_true", help="no progress bar")
     rec.set_defaults(func=run_record)
 
@@ -34,6 +38,8 @@ def add_actions(actions: argparse._SubParsersAction) -> None:
     lst = actions.add_parser("list", help="list the bundled scenarios (and the switchable effects)",
                              description="List the bundled scenarios with their length and description.")
     lst.add_argument("--effects", action="store_true", help="also list every switchable effect's parameters")
+    lst.add_argument("--variant", type=int, default=None, metavar="N",
+                     help="also list plant variant N's structure and the factor drawn for every parameter")
     lst.set_defaults(func=run_list)
 
 
@@ -47,6 +53,10 @@ def run_record(args: argparse.Namespace) -> int:
         if args.seed < 0:
             raise SimulationError(f"--seed: expected an integer >= 0, got {args.seed}")
         scenario = dataclasses.replace(scenario, seed=args.seed)
+    if args.variant is not None:
+        if args.variant < 0:
+            raise SimulationError(f"--variant: expected an integer >= 0 (0: the nominal machine), got {args.variant}")
+        scenario = dataclasses.replace(scenario, variant=args.variant)
     result = simulate(scenario, progress=not args.no_progress)
     try:
         rec, truth = write_run(result, args.out)
@@ -57,6 +67,10 @@ def run_record(args: argparse.Namespace) -> int:
           f"{scenario.duration_h:g} h)")
     print(f"wrote {truth} (ground truth: not for the gateway)")
     print("peak displacement (noiseless): " + ", ".join(f"{a} {v:+.2f} um" for a, v in peak.items()))
+    if scenario.variant:
+        from simulators.machine.variants import plant_variant
+
+        print(plant_variant(scenario.variant).summary())
     return 0
 
 
@@ -81,4 +95,11 @@ def run_list(args: argparse.Namespace) -> int:
     if args.effects:
         print()
         print(describe_effects())
+    if args.variant is not None:
+        from simulators.machine.variants import plant_variant
+
+        if args.variant < 0:
+            raise SimulationError(f"--variant: expected an integer >= 0 (0: the nominal machine), got {args.variant}")
+        print()
+        print("\n".join(plant_variant(args.variant).describe()))
     return 0

@@ -29,6 +29,7 @@ from simulators.machine.run import artefacts, room_temperature, sensor_noise
 from simulators.machine.scenario import Scenario, load_scenario
 from simulators.machine.schedule import compile_drives
 from simulators.machine.thermal import ThermalModel, room_deviation
+from simulators.machine.variants import variant_machine
 
 DISPLACEMENT_CHANNELS = tuple(f"{a}_um" for a in AXES)
 
@@ -44,6 +45,7 @@ class LiveMachine:
     def __init__(self, scenario: Scenario | str | Path, *, clock: Clock | None = None,
                  machine: MachineParams = DEFAULT_MACHINE) -> None:
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario, machine=machine)
+        machine = variant_machine(self.scenario.variant, machine)
         self.machine = machine
         self.clock: Clock = clock if clock is not None else ManualClock()
         self._drives = compile_drives(self.scenario, machine)

@@ -25,6 +25,7 @@ from simulators.machine.params import AXES, DEFAULT_MACHINE, MachineParams
 from simulators.machine.scenario import Scenario
 from simulators.machine.schedule import compile_drives
 from simulators.machine.thermal import ThermalModel, room_deviation
+from simulators.machine.variants import variant_machine
 
 _NOISE_BLOCK = 4096
 
@@ -120,7 +121,7 @@ class SimulationResult:
         return Recording(source=f"{self.scenario.name}.csv", period_s=self.machine.window_s, time_s=self.time_s,
                          present=np.ones(len(self.time_s), dtype=bool), factors=self.factors,
                          displacement={a: disp[:, i].copy() for i, a in enumerate(AXES)}, extras=extras,
-                         meta={"scenario": self.scenario.name, "seed": str(self.scenario.seed)})
+                         meta=_meta(self.scenario))
 
     def truth_columns(self) -> dict[str, np.ndarray]:
         cols = {f"{a}_true_um": self.true_um[:, i] for i, a in enumerate(AXES)}
@@ -131,6 +132,14 @@ class SimulationResult:
         for name, c in self.contributions_um.items():
             cols |= {f"effect_{name}_{a}_um": c[:, i] for i, a in enumerate(AXES)}
         return cols
+
+
+def _meta(scenario: Scenario) -> dict[str, str]:
+    """Metadata of a run's recording (the variant only when it is not the nominal machine)."""
+    out = {"scenario": scenario.name, "seed": str(scenario.seed)}
+    if scenario.variant:
+        out["plant_variant"] = str(scenario.variant)
+    return out
 
 
 def window_stats(drives: DriveTimeline, n_windows: int, *, progress: bool = False, fast: bool = True,
@@ -161,7 +170,12 @@ def thermal_run(model: ThermalModel, stats: np.ndarray, room_dev: np.ndarray
 
 def simulate(scenario: Scenario, *, machine: MachineParams = DEFAULT_MACHINE, progress: bool = False,
              fast: bool = True) -> SimulationResult:
-    """Run ``scenario`` offline. ``fast=False`` evaluates every 2 ms sample (the reference, for bench)."""
+    """Run ``scenario`` offline. ``fast=False`` evaluates every 2 ms sample (the reference, for bench).
+
+    The scenario's plant variant (``[plant] variant``) is drawn from ``machine``; the result's ``machine``
+    is the variant's.
+    """
+    machine = variant_machine(scenario.variant, machine)
     dt = machine.window_s
     n_windows = round(scenario.duration_s / dt)
     time_s = dt * np.arange(1, n_windows + 1)
@@ -194,8 +208,8 @@ def write_run(result: SimulationResult, out_dir: str | Path) -> tuple[Path, Path
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     sc = result.scenario
-    meta = {"scenario": sc.name, "seed": str(sc.seed), "machine": "sim-vmc",
-            "period_s": f"{result.machine.window_s:g}", "source": "cncgw simulate record"}
+    meta = _meta(sc) | {"machine": "sim-vmc", "period_s": f"{result.machine.window_s:g}",
+                        "source": "cncgw simulate record"}
     rec = write_recording(out / f"{sc.name}.csv", time_s=result.time_s, columns=result.recording_columns(),
                           meta=meta)
     truth_meta = meta | {"kind": "ground truth (not a recording: the gateway never reads this)",

@@ -16,6 +16,10 @@ A scenario file::
     [sensors]
     noise_um = 0.1                    # white noise of each displacement sensor
 
+    [plant]
+    variant = 0                       # 0: the nominal machine; N > 0: gains and time constants perturbed
+                                      # by seed N (simulators/machine/variants.py)
+
     [segments.run]                    # segments run in file order
     minutes = 60
     spindle_rpm = 1000                # or [400, 600] with changes_per_min = 350 (alternate)
@@ -93,6 +97,8 @@ class Scenario:
     room: Room = field(default_factory=Room)
     noise_um: float = 0.1
     effects: Effects = field(default_factory=Effects)
+    #: plant variant (``[plant] variant``): 0 is the nominal machine (see :mod:`simulators.machine.variants`)
+    variant: int = 0
 
     @property
     def duration_h(self) -> float:
@@ -163,6 +169,12 @@ def parse_scenario(doc: TomlDoc, *, machine: MachineParams = DEFAULT_MACHINE) ->
         noise_um = 0.1 if noise is None else noise
         sensors_t.done()
 
+    variant = 0
+    plant_t = root.table("plant")
+    if plant_t is not None:
+        variant = plant_t.int("variant", default=0, min=0) or 0
+        plant_t.done()
+
     t = (idle_min or 0.0) * 60.0
     segments = []
     for seg_name, seg_t in _named_tables(root, "segments"):
@@ -190,7 +202,7 @@ def parse_scenario(doc: TomlDoc, *, machine: MachineParams = DEFAULT_MACHINE) ->
     doc.raise_problems()
     return Scenario(name=name, description=description, source=str(doc.path), seed=seed,
                     duration_s=duration_s, initial_idle_s=(idle_min or 0.0) * 60.0, segments=tuple(segments),
-                    room=room, noise_um=noise_um, effects=effects)
+                    room=room, noise_um=noise_um, effects=effects, variant=variant)
 
 
 def _named_tables(root: Table, key: str) -> list[tuple[str, Table]]:
