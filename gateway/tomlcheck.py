@@ -21,6 +21,7 @@ from gateway.errors import GatewayError, did_you_mean, expected_one_of
 _MISSING: Any = object()
 _HEADER = re.compile(r"^\s*\[\[?\s*([^\]]+?)\s*\]\]?\s*(#.*)?$")
 _KEYLINE = re.compile(r"^\s*([A-Za-z0-9_\-\"'. ]+?)\s*=")
+_INLINE_KEY = re.compile(r"(?:^|[{,])\s*([A-Za-z0-9_\-]+)\s*=")
 
 
 def _split_dotted(text: str) -> tuple[str, ...]:
@@ -62,20 +63,49 @@ class TomlDoc:
 
     @staticmethod
     def _index_lines(text: str) -> dict[tuple[str, ...], int]:
-        """Map key paths to the line (1-based) that defines them: best effort, for messages only."""
+        """Map key paths to the line (1-based) that defines them: best effort, for messages only.
+
+        Entries of an array of tables (``[[path]]``) and of an array of inline tables written one per line
+        (``term = [`` then ``{ ... },`` lines) are numbered from 1, as :class:`Table` paths name them.
+        """
         index: dict[tuple[str, ...], int] = {}
+        counts: dict[tuple[str, ...], int] = {}  # array-of-tables key path -> entries so far
         prefix: tuple[str, ...] = ()
+        array: tuple[str, ...] | None = None  # inside a multi-line array of inline tables
         for number, line in enumerate(text.splitlines(), start=1):
-            if line.lstrip().startswith("#"):
+            stripped = line.strip()
+            if stripped.startswith("#"):
                 continue
+            if array is not None:
+                if stripped.startswith("{"):
+                    counts[array] = counts.get(array, 0) + 1
+                    entry = (*array, str(counts[array]))
+                    index.setdefault(entry, number)
+                    for key in _INLINE_KEY.findall(stripped):
+                        index.setdefault((*entry, key), number)
+                    continue
+                if stripped.startswith("]"):
+                    array = None
+                    continue
             header = _HEADER.match(line)
             if header:
-                prefix = _split_dotted(header.group(1))
+                prefix = ()
+                parts = _split_dotted(header.group(1))
+                for i, part in enumerate(parts):
+                    prefix = (*prefix, part)
+                    if i == len(parts) - 1 and stripped.startswith("[["):
+                        counts[prefix] = counts.get(prefix, 0) + 1
+                        index.setdefault(prefix, number)
+                    if prefix in counts:
+                        prefix = (*prefix, str(counts[prefix]))
                 index.setdefault(prefix, number)
                 continue
             key = _KEYLINE.match(line)
             if key:
-                index.setdefault(prefix + _split_dotted(key.group(1)), number)
+                path = prefix + _split_dotted(key.group(1))
+                index.setdefault(path, number)
+                if stripped.endswith("["):
+                    array = path
         return index
 
     def where(self, path: Sequence[str]) -> str:

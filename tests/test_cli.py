@@ -143,3 +143,16 @@ def test_console_script_exits_without_traceback(workdir):
     assert proc.returncode == 5
     assert proc.stderr.strip() == ("cncgw: error: nothing.toml: model file not found; create it with `cncgw identify "
                                    "--profile lathe.toml EXPERIMENTS... -o nothing.toml`")
+
+
+def test_estimate_with_an_absurd_model_is_an_error_not_a_memory_error(workdir, capsys):
+    from gateway.model import save_model
+
+    save_model(TRUTH, "lathe.model.toml")
+    text = Path("lathe.model.toml").read_text()
+    Path("late.toml").write_text(text.replace('factor = "i_sq"\n', 'factor = "i_sq"\ndelay_s = 1e12\n', 1))
+    assert main(["estimate", "--profile", "lathe.toml", "--model", "late.toml", "val.csv"]) == 5
+    err = capsys.readouterr().err
+    assert "late.toml:" in err
+    assert "delay_s: expected a dead time from 0 to 86400 s (1 day), got 1000000000000.0" in err
+    assert "Traceback" not in err

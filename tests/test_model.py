@@ -72,13 +72,80 @@ def good_text() -> str:
      'expected one of "first_order", "second_order", got "first_ordr" (a string) (did you mean "first_order"?)'),
     (lambda s: s.replace('axis = "z"\nfactor = "speed"', 'axis = "w"\nfactor = "speed"', 1), '"w" (a string)'),
     (lambda s: s.replace("[model]", "[model]\nowner = 1"), "model.owner: unknown key"),
-    (lambda s: s.replace("tau_s = 900", "tau_s = -900"), "tau_s: expected a number > 0, got -900"),
+    (lambda s: s.replace("tau_s = 900", "tau_s = -900"),
+     "tau_s: expected a time constant from 1 s to 7.776e+06 s (90 days), got -900.0 (a number)"),
 ])
 def test_bad_model_files_are_reported(edit, message):
     with pytest.raises(ModelError) as err:
         load_model("m.toml", text=edit(good_text()))
     assert message in str(err.value)
     assert str(err.value).startswith("m.toml:")
+
+
+TAU_RANGE = "expected a time constant from 1 s to 7.776e+06 s (90 days)"
+K_RANGE = ("expected the paper's K = 1/gain with |K| >= 1e-06 (a gain within +-1e+06 um per factor unit), or inf "
+           "for a zero path")
+DELAY_RANGE = "expected a dead time from 0 to 86400 s (1 day)"
+INPUTS = """
+[inputs.speed_sq]
+kind = "product"
+of = ["speed", "speed"]
+lag_s = [0.0, 3600.0]
+
+[inputs.day_sin]
+kind = "periodic"
+period_s = 86400.0
+phase = "sin"
+"""
+
+
+@pytest.mark.parametrize(("old", "new", "message"), [
+    # each of these ended in a traceback (ZeroDivisionError, MemoryError, ValueError) or in NaN estimates
+    ("gain = 0.012\nK = 83.33333333333333\nzeta", "K = 0.0\nzeta", f"path.7.term.1.K: {K_RANGE}, got 0.0"),
+    ("gain = 0.012\nK = 83.33333333333333\nzeta", "K = 5e-324\nzeta", f"path.7.term.1.K: {K_RANGE}, got 5e-324"),
+    ("delay_s = 150.0", "delay_s = 1e12", f"path.2.delay_s: {DELAY_RANGE}, got 1000000000000.0 (a number)"),
+    ("delay_s = 150.0", "delay_s = 1e300", f"path.2.delay_s: {DELAY_RANGE}, got 1e+300 (a number)"),
+    ("zeta = 0.45", "zeta = 1e300", "path.2.term.1.zeta: expected a damping ratio > 0 and <= 10000, got 1e+300 (a number)"),
+    ("omega_rad_s = 0.0006666666666666666", "omega_rad_s = 1e300",
+     "path.2.term.1.omega_rad_s: expected a natural frequency from 1.286e-07 to 1 rad/s (1/(90 days) to 1/(1 s)), "
+     "got 1e+300 (a number)"),
+    ("zeta = 0.45", "zeta = 5000.0",
+     "path.2.term.1.zeta: zeta = 5000.0 with omega_rad_s = 0.0006666666666666666 gives time constants 0.15 s and "
+     "1.5e+07 s: expected both to be a time constant from 1 s to 7.776e+06 s (90 days)"),
+    ("tau_s = 900.0", "tau_s = 5e-324", f"path.8.term.1.tau_s: {TAU_RANGE}, got 5e-324 (a number)"),
+    ("tau_s = 9000.0", "tau_s = 1e9", f"path.8.term.2.tau_s: {TAU_RANGE}, got 1000000000.0 (a number)"),
+    ("gain = 0.05, tau_s", "gain = 1e300, tau_s",
+     "path.8.term.1.gain: expected a static gain within +-1e+06 um per factor unit, got 1e+300 (a number)"),
+    ("z_i_sq = 2.25", "z_i_sq = 1e12",
+     "reference.z_i_sq: expected a factor level within +-1e+09 (in the factor's unit), got 1000000000000.0 (a number)"),
+    ("lag_s = [0.0, 3600.0]", "lag_s = [0.0, 1e-300]",
+     "inputs.speed_sq.lag_s: expected an array of two lags in s, each 0 (none) or from 1 s to 7.776e+06 s (90 days), "
+     "got [0.0, 1e-300]"),
+    ("period_s = 86400.0", "period_s = 1e-300",
+     "inputs.day_sin.period_s: expected a period from 1 s to 3.16224e+07 s (366 days), got 1e-300 (a number)"),
+])
+def test_values_out_of_physical_range_are_refused_at_their_line(old, new, message):
+    text = good_text() + INPUTS
+    assert text.count(old) == 1
+    bad = text.replace(old, new)
+    line = bad[: bad.index(new)].count("\n") + 1  # the key is on the first line of the edit
+    with pytest.raises(ModelError) as err:
+        load_model("m.toml", text=bad)
+    assert str(err.value).splitlines() == [f"m.toml:{line}: {message}"]
+
+
+def test_the_model_with_derived_inputs_used_above_loads():
+    model = load_model("m.toml", text=good_text() + INPUTS)
+    assert [d.name for d in model.inputs] == ["speed_sq", "day_sin"]
+
+
+def test_identification_searches_only_time_constants_a_model_file_may_hold():
+    from gateway.identify.common import Bounds
+    from gateway.model import limits
+
+    for dt_s, longest_s in ((60.0, 43200.0), (0.5, 600.0), (3600.0, 400 * 86400.0)):
+        b = Bounds.for_data(dt_s, longest_s)
+        assert limits.TAU_MIN_S <= math.exp(b.log_tau_min) < math.exp(b.log_tau_max) <= limits.TAU_MAX_S * (1 + 1e-12)
 
 
 def test_second_order_K_only_is_accepted():

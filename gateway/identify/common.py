@@ -14,6 +14,7 @@ import numpy as np
 import scipy.signal
 
 from gateway.errors import IdentificationError
+from gateway.model import limits
 from gateway.model.discrete import Section, first_order_coefficients
 from gateway.model.terms import FirstOrder, SecondOrder, Term
 from gateway.prepare import Prepared
@@ -98,7 +99,10 @@ class Bounds:
 
     @classmethod
     def for_data(cls, dt_s: float, longest_s: float) -> Bounds:
-        return cls(log_tau_min=math.log(0.25 * dt_s), log_tau_max=math.log(1.0 * max(longest_s, dt_s)))
+        # within the range a model file may hold (gateway.model.limits), so every fit can be loaded again
+        lo = min(max(0.25 * dt_s, limits.TAU_MIN_S), limits.TAU_MAX_S)
+        hi = min(max(longest_s, dt_s, lo), limits.TAU_MAX_S)
+        return cls(log_tau_min=math.log(lo), log_tau_max=math.log(hi))
 
     def of(self, structure: str) -> tuple[list[float], list[float]]:
         span = self.log_tau_max - self.log_tau_min

@@ -33,6 +33,7 @@ from typing import ClassVar
 import numpy as np
 import scipy.signal
 
+from gateway.model import limits
 from gateway.tomlcheck import NAME, Table
 
 #: signal values a derived input may read: factor and earlier input values, keyed by name
@@ -347,12 +348,12 @@ def parse_inputs(root: Table) -> list[DerivedInput]:
         inp: DerivedInput | None = None
         if kind == "product":
             of = t.str_list("of", unique=False, min_len=2)
-            lags = t.float_list("lag_s", default=(0.0, 0.0), expected="an array of two lags in s, each >= 0")
+            lags = t.float_list("lag_s", default=(0.0, 0.0), expected=limits.LAG_EXPECTED)
             if of is not None and len(of) != 2:
                 t.problem("of", f"expected exactly two signal names, got {len(of)}")
                 of = None
-            if lags is not None and (len(lags) != 2 or min(lags) < 0):
-                t.problem("lag_s", f"expected an array of two lags in s, each >= 0, got {list(lags)!r}")
+            if lags is not None and (len(lags) != 2 or not all(limits.lag_ok(x) for x in lags)):
+                t.problem("lag_s", f"expected {limits.LAG_EXPECTED}, got {list(lags)!r}")
                 lags = None
             if of is not None and lags is not None:
                 inp = Product(name=name, of=(of[0], of[1]), lag_s=(lags[0], lags[1]), unit=unit, note=note)
@@ -370,7 +371,8 @@ def parse_inputs(root: Table) -> list[DerivedInput]:
             if of1 is not None:
                 inp = Same(name=name, of=of1, unit=unit, note=note)
         elif kind == "periodic":
-            period = t.float("period_s", min=0.0, min_exclusive=True)
+            period = t.float("period_s", min=limits.PERIOD_MIN_S, max=limits.PERIOD_MAX_S,
+                             expected=limits.PERIOD_EXPECTED)
             phase = t.str("phase", choices=("sin", "cos"))
             if period is not None and phase is not None:
                 inp = Periodic(name=name, period_s=period, phase=phase, unit=unit or "1", note=note)

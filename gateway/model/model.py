@@ -9,7 +9,7 @@ motor's holding current squared on a vertical machine.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import MappingProxyType
@@ -19,6 +19,7 @@ import numpy as np
 import tomli_w
 
 from gateway.errors import ModelError
+from gateway.model import limits
 from gateway.model.discrete import Section
 from gateway.model.inputs import DerivedInput, check_order, input_to_toml, parse_inputs
 from gateway.model.terms import TERM_KINDS, FirstOrder, SecondOrder, Term
@@ -390,13 +391,11 @@ def load_model(path: str | Path, *, text: str | None = None) -> ThermalModel:
     for problem in check_order(inputs, factors):
         root.problem("inputs", problem)
     names = factors + tuple(d.name for d in inputs)
-    units = _name_table(root.table("units"), factors, str)
-    reference = _name_table(root.table("reference"), factors, float)
+    units = _name_table(root.table("units"), factors, lambda t, f: t.str(f))
+    reference = _name_table(root.table("reference"), factors, lambda t, f: t.float(
+        f, min=-limits.REFERENCE_MAX, max=limits.REFERENCE_MAX, expected=limits.REFERENCE_EXPECTED))
     info_t = root.table("info")
-    info = dict(info_t.data) if info_t is not None else {}
-    if info_t is not None:
-        for k in info_t:
-            info_t.raw(k)
+    info = _parse_info(info_t, factors) if info_t is not None else {}
 
     paths: dict[tuple[str, str], PathTF] = {}
     raw = root.raw("path", default=[], expected="an array of [[path]] tables")
@@ -419,15 +418,37 @@ def load_model(path: str | Path, *, text: str | None = None) -> ThermalModel:
                         machine=machine, info=info, inputs=tuple(inputs))
 
 
-def _name_table(t: Table | None, factors: Sequence[str], kind: type) -> dict[str, Any]:
+def _name_table(t: Table | None, factors: Sequence[str], get: Callable[[Table, str], Any]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     if t is None:
         return out
     for f in factors:
         if f in t:
-            out[f] = t.str(f) if kind is str else t.float(f)
+            value = get(t, f)
+            if value is not None:
+                out[f] = value
     t.done()
     return out
+
+
+def _parse_info(t: Table, factors: Sequence[str]) -> dict[str, Any]:
+    """``[info]`` is provenance kept as written; the keys that commands read are checked for their type."""
+    for k in t:
+        t.raw(k)
+    if "method" in t:
+        t.str("method")
+    if "experiments" in t:
+        t.str_list("experiments", unique=False)
+    if "longest_experiment_s" in t:
+        t.float("longest_experiment_s", min=0.0, min_exclusive=True)
+    ranges = t.table("deviation_range", expected="a table of factor -> [lowest, highest] deviation")
+    if ranges is not None:
+        for f in ranges:
+            pair = ranges.float_list(f, expected="[lowest, highest] deviation of the factor in the experiments")
+            if pair is not None and (len(pair) != 2 or pair[0] > pair[1]):
+                ranges.problem(f, f"expected [lowest, highest] deviation of the factor in the experiments, "
+                                  f"got {list(pair)!r}")
+    return dict(t.data)
 
 
 def _parse_path(t: Table, axes: Sequence[str], factors: Sequence[str]) -> PathTF | None:
@@ -436,7 +457,7 @@ def _parse_path(t: Table, axes: Sequence[str], factors: Sequence[str]) -> PathTF
     t.str("kind", default="")  # written for people; recomputed from the terms
     gain = t.float("gain", default=None)
     K = t.float("K", default=None, allow_inf=True)
-    delay = t.float("delay_s", default=0.0, min=0.0)
+    delay = t.float("delay_s", default=0.0, min=0.0, max=limits.DELAY_MAX_S, expected=limits.DELAY_EXPECTED)
     sd_t = t.table("sd")
     sd = {}
     if sd_t is not None:
@@ -446,6 +467,7 @@ def _parse_path(t: Table, axes: Sequence[str], factors: Sequence[str]) -> PathTF
                 sd[k] = v
         sd_t.done()
     terms: list[Term] = []
+    failed_term = False
     raw_terms = t.raw("term", default=[], expected="an array of [[path.term]] tables")
     for n, rt in enumerate(raw_terms if isinstance(raw_terms, list) else []):
         tt = Table(t.doc, rt, (*t.path, "term", str(n + 1))) if isinstance(rt, dict) else None
@@ -453,11 +475,13 @@ def _parse_path(t: Table, axes: Sequence[str], factors: Sequence[str]) -> PathTF
             t.problem("term", f"entry {n + 1}: expected a [[path.term]] table")
             continue
         term = _parse_term(tt)
-        if term is not None:
+        if term is None:
+            failed_term = True
+        else:
             terms.append(term)
     t.done()
-    if axis is None or factor is None or delay is None:
-        return None
+    if axis is None or factor is None or delay is None or failed_term:
+        return None  # the problems are recorded; a summary check on the remaining terms would only add noise
     p = PathTF(axis=axis, factor=factor, terms=tuple(terms), delay_s=delay, sd=MappingProxyType(sd))
     # the summary keys must agree with the terms, so a hand edit of one without the other is caught
     if gain is not None and not math.isclose(gain, p.gain, rel_tol=1e-9, abs_tol=1e-15):
@@ -469,25 +493,38 @@ def _parse_path(t: Table, axes: Sequence[str], factors: Sequence[str]) -> PathTF
 
 def _parse_term(t: Table) -> Term | None:
     kind = t.str("kind", choices=list(TERM_KINDS))
+    gain_bounds = {"min": -limits.GAIN_MAX, "max": limits.GAIN_MAX, "expected": limits.GAIN_EXPECTED}
     if kind == FirstOrder.kind:
-        gain = t.float("gain")
-        tau = t.float("tau_s", min=0.0, min_exclusive=True)
+        gain = t.float("gain", **gain_bounds)
+        tau = t.float("tau_s", min=limits.TAU_MIN_S, max=limits.TAU_MAX_S, expected=limits.TAU_EXPECTED)
         t.done()
         return FirstOrder(gain=gain, tau_s=tau) if None not in (gain, tau) else None
     if kind == SecondOrder.kind:
-        gain = t.float("gain", default=None)
+        gain = t.float("gain", default=None, **gain_bounds)
         K = t.float("K", default=None, allow_inf=True)
-        zeta = t.float("zeta", min=0.0, min_exclusive=True)
-        omega = t.float("omega_rad_s", min=0.0, min_exclusive=True)
+        zeta = t.float("zeta", min=0.0, min_exclusive=True, max=limits.ZETA_MAX, expected=limits.ZETA_EXPECTED)
+        omega = t.float("omega_rad_s", min=1 / limits.TAU_MAX_S, max=1 / limits.TAU_MIN_S,
+                        expected=limits.OMEGA_EXPECTED)
         t.done()
+        if K is not None and abs(K) < 1 / limits.GAIN_MAX:
+            t.problem("K", f"expected {limits.K_EXPECTED}, got {K!r}")
+            return None
         if gain is None and K is None:
-            t.problem(None, 'missing "gain" (um per factor unit) or the paper\'s "K" (= 1/gain)')
+            if "gain" not in t and "K" not in t:
+                t.problem(None, 'missing "gain" (um per factor unit) or the paper\'s "K" (= 1/gain)')
             return None
         if gain is None:
             gain = 0.0 if math.isinf(K) else 1.0 / K
         elif K is not None and not (math.isinf(K) and gain == 0) and not math.isclose(
                 K * gain, 1.0, rel_tol=1e-9):
             t.problem("K", f"{K!r} does not match 1/gain = {1 / gain if gain else math.inf!r}")
-        return SecondOrder(gain=gain, zeta=zeta, omega_rad_s=omega) if None not in (zeta, omega) else None
+        if zeta is None or omega is None:
+            return None
+        fast, slow = limits.second_order_time_constants(zeta, omega)
+        if not (limits.time_constant_ok(fast) and limits.time_constant_ok(slow)):
+            t.problem("zeta", f"zeta = {zeta!r} with omega_rad_s = {omega!r} gives time constants {fast:.4g} s "
+                              f"and {slow:.4g} s: expected both to be {limits.TAU_EXPECTED}")
+            return None
+        return SecondOrder(gain=gain, zeta=zeta, omega_rad_s=omega)
     t.done()
     return None
