@@ -1,0 +1,89 @@
+"""bench/diagnose.py's scenario builder: the concealed effect acts in the identification experiments too."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import sys
+
+import pytest
+from tests_paths import ROOT
+
+from simulators.machine.scenario import parse_scenario_text
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("bench_diagnose", ROOT / "bench" / "diagnose.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up
+    try:
+        spec.loader.exec_module(module)
+        yield module
+    finally:
+        del sys.modules[spec.name]
+
+
+def _parse(plan):
+    return {name: parse_scenario_text(text, source=name) for part in (plan.experiments, plan.days, plan.fresh)
+            for name, text in part.items()}
+
+
+def test_the_effect_is_in_every_identification_experiment_and_day(bench):
+    plan = _parse(bench.new_plan("eddy loss", 2))
+    assert len(plan) == 9 + 4 + 1
+    for name, sc in plan.items():
+        assert sc.effects.enabled == ("eddy_loss",), name
+        assert sc.effects.eddy_loss.loss_w_at_1000rpm == 15.0
+        assert sc.variant == 2, name
+    # the experiments keep the paper's schedules
+    one = plan["exp-spindle-1000rpm"]
+    assert [(s.duration_s, s.spindle_rpm) for s in one.segments] == [(3600.0, (1000.0,))]
+    assert one.duration_h == 12.0
+
+
+def test_the_room_keeps_its_time_of_day_in_each_experiment(bench):
+    plan = _parse(bench.new_plan("room recorded", 1))
+    exps = [sc for name, sc in plan.items() if name.startswith("exp-")]
+    peaks = {round(sc.effects.room_cycle.peak_at_h, 3) for sc in exps}
+    assert len(peaks) == 9  # each experiment starts at its own time of day
+    assert all(0.0 <= p < 24.0 for p in peaks)
+    assert all(sc.room.thermometer for sc in plan.values())
+    assert plan["day1"].effects.room_cycle.peak_at_h == 15.0  # days run from midnight, warmest at 15:00
+    assert plan["day1"].effects.room_cycle.drift_k_per_h == 0.02
+
+
+def test_schedules_and_noise_depend_on_the_variant_not_the_effect(bench):
+    a, b = _parse(bench.new_plan("cabinet", 3)), _parse(bench.new_plan("none", 3))
+    assert a.keys() == b.keys()
+    for name, sc in a.items():
+        assert sc.effects.enabled == ("cabinet",)
+        assert b[name].effects.enabled == ()
+        assert dataclasses.replace(sc, effects=b[name].effects) == b[name], name
+    other = _parse(bench.new_plan("none", 4))
+    assert other["fresh"].segments != b["fresh"].segments
+    assert other["fresh"].seed != b["fresh"].seed
+
+
+def test_the_sensor_step_is_in_one_experiment_and_two_days_never_the_fresh_day(bench):
+    plan = _parse(bench.new_plan("sensor step", 1))
+    stepped = sorted(n for n, sc in plan.items() if sc.effects.sensor_artefacts is not None)
+    assert len([n for n in stepped if n.startswith("exp-")]) == 1
+    assert len([n for n in stepped if n.startswith("day")]) == 2
+    assert "fresh" not in stepped
+    for n in stepped:
+        sa = plan[n].effects.sensor_artefacts
+        assert sa.step_um == (0.0, 0.0, 2.0)
+        assert 0.0 < sa.step_at_h < plan[n].duration_h
+
+
+def test_accepted_names_are_read_from_the_written_model_info(bench, tmp_path):
+    (tmp_path / "m.diagnosed.model.toml").write_text(
+        '[info.diagnosis]\naccepted = ["dead_time:coolant:spindle_speed on y, z", "cabinet on z"]\n'
+        'artefacts_excluded = ["step on z at 3.00 h in day1"]\n')
+    (tmp_path / "report.md").write_text("## Conclusions\n\n- nothing significant is missing: ...\n")
+    names = bench.diagnosis_names(tmp_path)
+    assert names.accepted == ["dead_time:coolant:spindle_speed on y, z", "cabinet on z"]
+    assert names.artefacts == ["step on z at 3.00 h in day1"]
+    assert names.nothing_missing
+    assert [bench.family(n) for n in names.accepted] == ["dead_time", "cabinet"]
