@@ -23,6 +23,7 @@ from typing import Any
 
 from gateway.errors import ProfileError
 from gateway.live.settings import Compensation, Live, OpcUa, parse_compensation, parse_live, parse_opcua
+from gateway.outputs.mqtt import Mqtt, parse_mqtt
 from gateway.tomlcheck import NAME, Table, TomlDoc
 
 __all__ = ["Channel", "Compensation", "Device", "Factor", "Live", "OpcUa", "Profile", "RecordingLayout", "Sampling",
@@ -124,6 +125,7 @@ class Profile:
     compensation: Compensation = field(default_factory=Compensation)
     live: Live = field(default_factory=Live)
     opcua: OpcUa = field(default_factory=OpcUa)
+    mqtt: Mqtt = field(default_factory=Mqtt)
 
     @property
     def factor_names(self) -> tuple[str, ...]:
@@ -193,6 +195,7 @@ def load_profile(path: str | Path) -> Profile:
     live = parse_live(root, sampling.window_s)
     compensation = parse_compensation(root, axes, sampling.window_s)
     opcua = parse_opcua(root, doc.path.parent)
+    mqtt = parse_mqtt(root, doc.path.parent)
 
     root.done()
     doc.raise_problems()
@@ -200,6 +203,7 @@ def load_profile(path: str | Path) -> Profile:
         path=doc.path, name=name, description=description, axes=axes, sampling=sampling,
         factors=tuple(factors), recording=recording, model_path=model_path,
         devices=tuple(devices), channels=tuple(channels), compensation=compensation, live=live, opcua=opcua,
+        mqtt=mqtt,
     )
 
 

@@ -80,6 +80,7 @@ class LiveGateway:
         self.writer: CompensationWriter | None = None
         self.opcua: Any = None
         self.acquisition: Any = None
+        self.outputs: list[Any] = []  # outputs beside OPC UA (gateway.outputs): MQTT
         self.started_wall: float | None = None
         self.started_s: float | None = None
         self.windows_live = 0
@@ -145,6 +146,13 @@ class LiveGateway:
                                      on_hold=self.writer.request_hold if p.opcua.writable else None)
             self.opcua.start()
 
+        if p.mqtt.enabled:
+            from gateway.outputs.mqtt import MqttOutput
+
+            self.outputs.append(MqttOutput(p.mqtt, machine=p.name, data_dir=self.data_dir,
+                                           window_s=p.sampling.window_s, store=self.store, profile=p,
+                                           factor_units={f.name: f.unit for f in p.factors}).start())
+
         self.acquisition = Acquisition(p, clock=self.clock, sinks=[self.store, self._on_record], spin_s=self._spin_s,
                                        rt_priority=self._rt_priority, driver_factories=self._driver_factories)
         if not self.stepped:
@@ -166,6 +174,8 @@ class LiveGateway:
             self.writer.stop()
         if self.opcua is not None:
             self.opcua.stop()
+        for output in self.outputs:
+            output.stop()
         if self.audit is not None:
             self.audit.event(self.clock.now(), "stop", "gateway", "stopped")
             self.audit.close()
@@ -208,6 +218,15 @@ class LiveGateway:
                 self.audit.event(self.clock.now(), "gap", "estimator", gap.describe(self.profile.sampling.window_s))
         self._log_window(record, update)
         self._publish_health(record, update)
+        if self.outputs:
+            from gateway.outputs import snapshot
+
+            snap = snapshot(self, record, update)
+            for output in self.outputs:
+                try:
+                    output.window(snap)
+                except Exception:  # an output's trouble never stops the estimate or the compensation
+                    log.exception("output %s: window %d not taken", output.name, record.index)
         for listener in self.listeners:
             listener(record, update)
 
