@@ -31,6 +31,7 @@ from typing import Any, ClassVar
 
 from gateway.clock import Clock, RealClock
 from gateway.errors import DeviceTimeout, DriverError
+from gateway.tomlcheck import describe
 
 
 class Quality(enum.IntEnum):
@@ -72,10 +73,20 @@ class DeviceOptions:
     backoff_max_s: float = 60.0
 
 
+#: the shortest fast period a device may be sampled at: a Python sampler thread cannot tick faster (2 kHz)
+FASTEST_PERIOD_S = 0.0005
+#: a channel's ``scale`` (engineering units per count or reading): magnitude in [SCALE_MIN, SCALE_MAX];
+#: ``offset``: magnitude at most OFFSET_MAX. Wider is no instrument: a raw value times it overflows or vanishes.
+SCALE_MIN = 1e-12
+SCALE_MAX = 1e9
+OFFSET_MAX = 1e9
+
+
 def parse_common_options(table: Any, *, timeout_s: float = 0.5) -> dict[str, Any]:
     """Read the keys of :class:`DeviceOptions` from a ``[devices.NAME]`` table (typed, with bounds)."""
     out = {
-        "period_s": table.float("period_s", default=None, min=0.0, min_exclusive=True, max=60.0),
+        "period_s": table.float("period_s", default=None, min=FASTEST_PERIOD_S, max=60.0,
+                                expected=f"a period from {FASTEST_PERIOD_S:g} s (2 kHz) to 60 s"),
         "timeout_s": table.float("timeout_s", default=timeout_s, min=0.0, min_exclusive=True, max=60.0),
         "retries": table.int("retries", default=0, min=0, max=10),
         "backoff_s": table.float("backoff_s", default=1.0, min=0.0, min_exclusive=True, max=3600.0),
@@ -89,6 +100,19 @@ def parse_common_options(table: Any, *, timeout_s: float = 0.5) -> dict[str, Any
                                        f"got {out['backoff_max_s']:g}")
         out["backoff_max_s"] = out["backoff_s"]
     return out
+
+
+def parse_scaling(table: Any, per: str = "count") -> tuple[float | None, float | None]:
+    """A channel's ``scale`` and ``offset`` (``value = raw * scale + offset``), checked against the bounds above."""
+    expected = (f"a non-zero number of engineering units per {per}, from {SCALE_MIN:g} to {SCALE_MAX:g} in "
+                "magnitude (negative to reverse)")
+    scale = table.float("scale", default=1.0, expected=expected)
+    if scale is not None and not SCALE_MIN <= abs(scale) <= SCALE_MAX:
+        table.problem("scale", f"expected {expected}, got {describe(table.data['scale'])}")
+        scale = None
+    offset = table.float("offset", default=0.0, min=-OFFSET_MAX, max=OFFSET_MAX,
+                         expected=f"an offset in engineering units within +-{OFFSET_MAX:g}")
+    return scale, offset
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)

@@ -32,7 +32,7 @@ from typing import Any, ClassVar
 
 import can
 
-from drivers.base import DeviceOptions, Driver, Quality, parse_common_options
+from drivers.base import DeviceOptions, Driver, Quality, parse_common_options, parse_scaling
 from gateway.errors import DeviceTimeout, DriverError
 
 INTERFACES = tuple(sorted(can.VALID_INTERFACES))
@@ -128,11 +128,7 @@ class CanDriver(Driver):
         length = table.int("length_bits", min=1, max=64)
         signed = table.bool("signed", default=False)
         order = table.str("byte_order", default="little", choices=("little", "big"))
-        scale = table.float("scale", default=1.0)
-        offset = table.float("offset", default=0.0)
-        if scale == 0:
-            table.problem("scale", "expected a non-zero number (engineering units per count), got 0")
-            scale = None
+        scale, offset = parse_scaling(table, "count")
         if None in (extended, frame_id, start, length, signed, order, scale, offset):
             return None
         address = CanSignalAddress(frame_id=frame_id, extended_id=extended, start_bit=start, length_bits=length,

@@ -30,7 +30,16 @@ from typing import Any, ClassVar
 
 import serial
 
-from drivers.base import DeviceOptions, Driver, LinkBudget, Quality, SharedLine, parse_common_options, serial_char_s
+from drivers.base import (
+    DeviceOptions,
+    Driver,
+    LinkBudget,
+    Quality,
+    SharedLine,
+    parse_common_options,
+    parse_scaling,
+    serial_char_s,
+)
 from gateway.errors import DeviceTimeout
 
 BAUDRATES = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)
@@ -97,11 +106,7 @@ class DconDriver(Driver):
     def parse_channel_address(cls, table: Any) -> DconInput | None:
         module = table.int("module", min=0, max=255, expected="a module address in 0..255")
         number = table.int("input", min=0, max=15, expected="an input number in 0..15")
-        scale = table.float("scale", default=1.0)
-        offset = table.float("offset", default=0.0)
-        if scale == 0:
-            table.problem("scale", "expected a non-zero number (engineering units per reading), got 0")
-            scale = None
+        scale, offset = parse_scaling(table, "reading")
         if None in (module, number, scale, offset):
             return None
         return DconInput(module=module, input=number, scale=scale, offset=offset)

@@ -26,7 +26,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from drivers.base import Driver, Quality, SharedLine, unpack_words
+from drivers.base import Driver, Quality, SharedLine, parse_scaling, unpack_words
 from gateway.errors import DeviceTimeout, DriverError
 
 DATA_TYPES = ("int16", "uint16", "int32", "uint32", "float32")
@@ -80,11 +80,7 @@ def parse_register_address(table: Any) -> RegisterAddress | None:
     data_type = table.str("data_type", default="int16", choices=DATA_TYPES)
     word_order = table.str("word_order", default="big", choices=ORDERS)
     byte_order = table.str("byte_order", default="big", choices=ORDERS)
-    scale = table.float("scale", default=1.0)
-    offset = table.float("offset", default=0.0)
-    if scale == 0:
-        table.problem("scale", "expected a non-zero number (engineering units per count), got 0")
-        scale = None
+    scale, offset = parse_scaling(table, "count")
     unit_id = table.int("unit_id", default=None, min=1, max=247,
                         expected="a Modbus unit address in 1..247 (the unit on the device's line or behind its "
                                  "gateway; default: the device's unit_id)")

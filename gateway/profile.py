@@ -21,6 +21,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
+from drivers.base import FASTEST_PERIOD_S
 from gateway.errors import ProfileError
 from gateway.live.settings import Compensation, Live, OpcUa, parse_compensation, parse_live, parse_opcua
 from gateway.outputs.mqtt import Mqtt, parse_mqtt
@@ -212,7 +213,8 @@ def _parse_sampling(root: Table, axes: tuple[str, ...]) -> Sampling:
     fast = window = coverage = burst = speed_channel = None
     disp: dict[str, str] = {}
     if sampling_t is not None:
-        fast = sampling_t.float("fast_period_s", default=0.002, min=0.0, min_exclusive=True, max=10.0)
+        fast = sampling_t.float("fast_period_s", default=0.002, min=FASTEST_PERIOD_S, max=10.0,
+                                expected=f"a period from {FASTEST_PERIOD_S:g} s (2 kHz) to 10 s")
         window = sampling_t.float("window_s", default=60.0, min=0.0, min_exclusive=True, max=86400.0)
         coverage = sampling_t.float("min_coverage", default=0.9, min=0.0, max=1.0)
         disp_t = sampling_t.table("displacement_channels")
@@ -222,7 +224,7 @@ def _parse_sampling(root: Table, axes: tuple[str, ...]) -> Sampling:
                 if ch is not None:
                     disp[a] = ch
             disp_t.done()
-        burst = sampling_t.float("burst_s", default=3.0, min=0.0, min_exclusive=True)
+        burst = sampling_t.float("burst_s", default=3.0, min=0.0, min_exclusive=True, max=86400.0)
         speed_channel = sampling_t.str("burst_speed_channel", default=None, pattern=NAME,
                                        expected="a channel name (spindle speed in rpm)")
         sampling_t.done()
@@ -233,6 +235,9 @@ def _parse_sampling(root: Table, axes: tuple[str, ...]) -> Sampling:
     burst = burst if burst is not None else 3.0
     if sampling_t is not None and disp and burst > window:
         sampling_t.problem("burst_s", f"a displacement burst ({burst:g} s) must fit in the window ({window:g} s)")
+    if sampling_t is not None and disp and burst < fast:
+        sampling_t.problem("burst_s", f"a displacement burst ({burst:g} s) must hold at least one fast sample "
+                                      f"({fast:g} s)")
     return Sampling(fast_period_s=fast, window_s=window, min_coverage=coverage if coverage is not None else 0.9,
                     displacement_channels=MappingProxyType(disp), burst_s=burst, burst_speed_channel=speed_channel)
 
@@ -309,7 +314,9 @@ def _parse_acquisition(root: Table, factors: list[Factor],
     by_name = {d.name: d for d in devices}
 
     channels: list[Channel] = []
+    channel_tables: list[str] = []  # every channel, parsed or not: a bad one is not also reported as missing
     for cname, t in root.tables("channels", name_pattern=NAME):
+        channel_tables.append(cname)
         dev = t.str("device", choices=device_tables or None,
                     expected=f"the name of a [devices.NAME] table ({', '.join(device_tables)})" if device_tables
                     else "the name of a [devices.NAME] table (there are none)")
@@ -324,8 +331,8 @@ def _parse_acquisition(root: Table, factors: list[Factor],
 
     if devices and not root.doc.problems:
         _check_link_budgets(root, devices, channels, sampling)
-    if channels:
-        names = [c.name for c in channels]
+    if channel_tables:
+        names = channel_tables
         for f in factors:
             if f.channel not in names:
                 root.doc.problem(("factors", f.name, "channel"),

@@ -24,6 +24,15 @@ _KEYLINE = re.compile(r"^\s*([A-Za-z0-9_\-\"'. ]+?)\s*=")
 _INLINE_KEY = re.compile(r"(?:^|[{,])\s*([A-Za-z0-9_\-]+)\s*=")
 
 
+_MAX_DIGITS = 4300  # sys.get_int_max_str_digits() by default since Python 3.11
+
+
+def _long_integer_line(text: str) -> str:
+    """The line of the first integer too long to convert, for the message ('' when there is none)."""
+    match = re.search(rf"\d[\d_]{{{_MAX_DIGITS},}}", text)
+    return str(text.count("\n", 0, match.start()) + 1) if match else ""
+
+
 def _split_dotted(text: str) -> tuple[str, ...]:
     parts = [p.strip().strip("\"'") for p in re.findall(r"\"[^\"]*\"|'[^']*'|[^.]+", text)]
     return tuple(p for p in parts if p)
@@ -58,6 +67,15 @@ class TomlDoc:
             data = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
             raise error(f"{self.path}: not valid TOML: {exc}") from None
+        except RecursionError:  # tomllib recurses once per level of nesting
+            raise error(f"{self.path}: arrays or inline tables nested too deep to read: expected a few levels "
+                        "(a profile or model nests at most three)") from None
+        except ValueError as exc:  # an integer longer than Python converts (sys.get_int_max_str_digits)
+            where = _long_integer_line(text)
+            if not where:
+                raise error(f"{self.path}: not valid TOML: {exc}") from None
+            raise error(f"{self.path}:{where}: an integer of more than {_MAX_DIGITS} digits: expected "
+                        f"an integer of at most {_MAX_DIGITS} digits") from None
         self._lines = self._index_lines(text)
         self.root = Table(self, data, ())
 

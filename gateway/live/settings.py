@@ -232,6 +232,12 @@ def _parse_axis(name: str, t: Table) -> AxisOutput | None:
         sign = None
     if None in (register, readback, sign, unit, data_type, order):
         return None
+    words = 2 if data_type == "int32" else 1  # as AxisOutput.n_registers
+    for key, first in (("register", register), ("readback", readback)):
+        if first + words - 1 > 65535:
+            t.problem(key, f"the {data_type} value at {first} needs registers {first}..{first + words - 1}: "
+                           f"expected an address in 0..{65536 - words} (the last register is 65535)")
+            return None
     return AxisOutput(axis=name, register=register, readback=readback, sign=sign, unit_um=unit,
                       data_type=data_type, word_order=order)
 
@@ -280,6 +286,10 @@ def parse_opcua(root: Table, base: Path) -> OpcUa:
     secure = [s for s in (security or ()) if s != "None"]
     if secure and not (cert_p and key_p):
         t.problem("security", f"{', '.join(secure)} needs opcua.certificate and opcua.private_key")
+    for key, file in (("certificate", cert_p), ("private_key", key_p)):
+        if file is not None and not file.is_file():  # found at start, not when the first client connects
+            what = "the server certificate (DER or PEM)" if key == "certificate" else "its private key (PEM)"
+            t.problem(key, f'"{file}": file not found: expected {what}, a path relative to the profile\'s folder')
     return OpcUa(enabled=True if enabled is None else enabled, host=host or "127.0.0.1",
                  port=4840 if port is None else port, security=tuple(security or ("None",)), certificate=cert_p,
                  private_key=key_p, writable=bool(writable))
