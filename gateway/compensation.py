@@ -14,8 +14,10 @@ for count with what was written (alarm ``verify`` otherwise; the writer then tak
 truth and re-synchronises).
 
 Faults. An update whose estimate rests on bad or missing windows, or no update for ``[live]
-stale_after_s``, holds the offsets at once and raises an alarm (``inputs``); with ``on_fault =
-"ramp_to_zero"`` they ramp to zero at ``max_step_um`` a window once the fault has lasted
+stale_after_s``, holds the offsets at once and raises an alarm (``inputs``); an estimate outside the
+model's plausibility envelope (:mod:`gateway.live.plausibility`: too large, moving too fast, not finite)
+holds them too and raises ``implausible``: such an estimate is never clamped and written. With
+``on_fault = "ramp_to_zero"`` the offsets ramp to zero at ``max_step_um`` a window once a fault has lasted
 ``fault_hold_s``. A CNC that cannot be reached or refuses a write raises ``cnc``; nothing is assumed
 written. On (re)connecting, the writer reads what the CNC applies and first commands exactly that, then
 enables it: a restart, a CNC that tripped its watchdog (offsets ramping down) or one that was reset never
@@ -44,6 +46,7 @@ from gateway.errors import CompensationError, DriverError
 from gateway.live.audit import Alarms, AuditLog, WriteEntry
 from gateway.live.cnc import CncLink, CncRejected, CncState
 from gateway.live.estimator import EstimateUpdate
+from gateway.live.plausibility import Plausibility
 from gateway.live.settings import Compensation
 
 log = logging.getLogger(__name__)
@@ -61,6 +64,8 @@ class CompensationWriter:
         audit: the audit log (default: none).
         link_factory: makes the CNC link (default: :class:`CncLink` on the settings); tests pass one that
             talks to a simulator the same way.
+        plausibility: the bounds an estimate must meet to move the offsets (the live gateway always passes
+            the model's; ``None``: no check, for tests of the limits alone).
 
     Run it as a thread (:meth:`start`/:meth:`stop`), or call :meth:`service` from a stepping loop.
 
@@ -68,8 +73,10 @@ class CompensationWriter:
 
     def __init__(self, settings: Compensation, *, clock: Clock, window_s: float, stale_after_s: float,
                  alarms: Alarms | None = None, audit: AuditLog | None = None,
-                 link_factory: Callable[[], CncLink] | None = None) -> None:
+                 link_factory: Callable[[], CncLink] | None = None,
+                 plausibility: Plausibility | None = None) -> None:
         self.settings = settings
+        self.plausibility = plausibility
         self.clock = clock
         self.window_s = float(window_s)
         self.stale_after_s = float(stale_after_s)
@@ -255,23 +262,32 @@ class CompensationWriter:
     def _on_update(self, update: EstimateUpdate, now: float, received_wall: float | None) -> None:
         self._last_update_s = now
         estimate = {a: float(update.estimate_um.get(a, math.nan)) for a in self.axes}
-        if not update.usable or not all(math.isfinite(v) for v in estimate.values()):
-            if update.first_live and update.usable is False and update.filled <= 1:
+        if not update.usable:
+            if update.first_live and update.filled <= 1:
                 return  # the gateway joined its first window part-way: hold quietly for that one window
-            reason = update.reason or f"estimate not finite: {_fmt(estimate)}"
-            self._fault(now, f"holding the offsets: {reason}", update, estimate)
+            self._fault(now, f"holding the offsets: {update.reason}", update, estimate)
             return
+        self.alarms.clear("inputs", now, f"inputs good again at window {update.index}")
+        ahead = {a: float(update.next_um.get(a, math.nan)) for a in self.axes}
+        use_ahead = self.settings.aim == "midpoint"
+        if self.plausibility is not None:
+            implausible = self.plausibility.check(update.index, estimate, ahead if use_ahead else None)
+        elif not all(math.isfinite(v) for v in estimate.values()):
+            implausible = f"window {update.index}: estimate not finite: {_fmt(estimate)}"
+        else:
+            implausible = ""
+        if implausible:  # a model far outside its data, or corrupt: hold, never clamp and write
+            self._fault(now, f"holding the offsets: {implausible}", update, estimate, alarm="implausible")
+            return
+        self.alarms.clear("implausible", now, f"estimate plausible again at window {update.index}")
         if self.hold_requested:
             self.alarms.raise_("operator_hold", "an operator asked to hold the offsets (OPC UA HoldRequest)", now)
             return
         self.alarms.clear("operator_hold", now)
         self._fault_since_s = None
-        self.alarms.clear("inputs", now, f"inputs good again at window {update.index}")
         aim = estimate
-        if self.settings.aim == "midpoint":
-            ahead = {a: float(update.next_um.get(a, math.nan)) for a in self.axes}
-            if all(math.isfinite(v) for v in ahead.values()):
-                aim = {a: 0.5 * (estimate[a] + ahead[a]) for a in self.axes}
+        if use_ahead and all(math.isfinite(v) for v in ahead.values()):
+            aim = {a: 0.5 * (estimate[a] + ahead[a]) for a in self.axes}
         target = {a.axis: a.sign * aim[a.axis] for a in self.settings.axes}
         self._move(now, update.index, estimate, target, received_wall)
 
@@ -282,10 +298,10 @@ class CompensationWriter:
                              f"{self.stale_after_s:g} s)", None, None)
 
     def _fault(self, now: float, message: str, update: EstimateUpdate | None,
-               estimate: dict[str, float] | None) -> None:
+               estimate: dict[str, float] | None, *, alarm: str = "inputs") -> None:
         if self._fault_since_s is None:
             self._fault_since_s = now
-        self.alarms.raise_("inputs", message, now)
+        self.alarms.raise_(alarm, message, now)
         s = self.settings
         if s.on_fault != "ramp_to_zero" or now - self._fault_since_s < s.fault_hold_s:
             return
@@ -294,8 +310,8 @@ class CompensationWriter:
         if all(v == 0.0 for v in self.commanded_um.values()):
             return
         self._last_ramp_s = now
-        self.alarms.raise_("ramp", f"inputs bad for {now - self._fault_since_s:.0f} s: ramping the offsets to zero",
-                           now)
+        self.alarms.raise_("ramp", f"{alarm} fault for {now - self._fault_since_s:.0f} s: ramping the offsets to "
+                                   "zero", now)
         nan = dict.fromkeys(self.axes, math.nan)
         self._move(now, update.index if update else None, estimate or nan, dict.fromkeys(self.axes, 0.0), None,
                    note="fault ramp to zero")

@@ -422,11 +422,19 @@ def format_summary(profile: Profile) -> str:
     return "\n".join(lines)
 
 
+def _plausible(a: Any) -> str:
+    """The profile's tightening of an axis's plausibility bounds, for the summary line."""
+    bounds = [f"|estimate| {a.plausible_um:g} um" if a.plausible_um is not None else "",
+              f"a change of {a.plausible_change_um:g} um a window" if a.plausible_change_um is not None else ""]
+    bounds = [b for b in bounds if b]
+    return f"; held beyond {' or '.join(bounds)}" if bounds else ""
+
+
 def _compensation_line(profile: Profile) -> str:
     c = profile.compensation
     if not c.enabled:
         return "compensation off (dry run)"
     axes = ", ".join(f"{a.axis} {'-' if a.sign < 0 else '+'}estimate -> holding {a.register} ({a.data_type}, "
-                     f"{a.unit_um:g} um)" for a in c.axes)
+                     f"{a.unit_um:g} um{_plausible(a)})" for a in c.axes)
     return (f"compensation ENABLED: writes to the CNC at {c.host}:{c.port}: {axes}; limit {c.limit_um:g} um, "
             f"step {c.max_step_um:g} um, deadband {c.deadband_um:g} um, on fault {c.on_fault}")

@@ -21,6 +21,8 @@ from tests_paths import PROFILES
 from gateway.commands._common import load_model_for
 from gateway.estimate import estimate
 from gateway.identify import identify
+from gateway.live.plausibility import Plausibility
+from gateway.live.settings import Compensation, default_axes
 from gateway.profile import load_profile
 from simulators.machine import load_scenario, simulate
 
@@ -78,3 +80,22 @@ def test_reidentified_model_predicts_held_out_runs_like_the_bundled_one(models, 
         assert diff <= max(0.2 * NOISE_UM, 0.01 * peak), (scenario, axis, diff, peak)
         # and both are as good as each other against what was measured
         assert b.metrics[axis].rms_um == pytest.approx(a.metrics[axis].rms_um, abs=0.2 * NOISE_UM), (scenario, axis)
+
+
+def test_identification_reproduces_the_envelope_and_held_out_runs_stay_plausible(models):
+    bundled, again = models
+    assert bundled.envelope is not None
+    assert bundled.envelope.window_s == 60.0
+    for a in bundled.axes:
+        b, g = bundled.envelope.axes[a], again.envelope.axes[a]
+        # the span of a noisy measurement and the peak of a prediction: noise-level differences only
+        assert g.max_abs_um == pytest.approx(b.max_abs_um, abs=5 * NOISE_UM), a
+        assert g.max_change_um == pytest.approx(b.max_change_um, abs=NOISE_UM), a
+    assert bundled.envelope.axes["z"].max_abs_um > 16.0  # the 1000 rpm run's growth, measured
+    # runs within the identified speeds never look implausible to the live gateway
+    settings = Compensation(axes=default_axes(bundled.axes))
+    for name in HELD_OUT:
+        est = estimate(bundled, simulate(load_scenario(name)).recording()).estimated
+        check = Plausibility.for_model(bundled, settings, window_s=60.0)
+        verdicts = [check.check(k, dict(zip(bundled.axes, est[:, k], strict=True))) for k in range(est.shape[1])]
+        assert verdicts == [""] * est.shape[1], (name, next(v for v in verdicts if v))

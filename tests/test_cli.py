@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -11,8 +12,10 @@ import numpy as np
 import pytest
 
 from gateway.cli import main
-from gateway.model import FirstOrder, PathTF, SecondOrder, ThermalModel, load_model
-from gateway.recording import read_recording, write_recording
+from gateway.estimate import estimate
+from gateway.model import FirstOrder, PathTF, SecondOrder, ThermalModel, load_model, save_model
+from gateway.profile import load_profile
+from gateway.recording import read_for_profile, read_recording, write_recording
 from gateway.synthetic import Segment, make_recording, schedule_inputs
 
 PROFILE = """
@@ -87,6 +90,26 @@ def test_identify_then_estimate_on_files(workdir, capsys):
     assert "identified with the joint method from exp1, exp2" in shown
 
 
+def test_model_envelope_adds_what_the_recordings_support_to_an_older_model(workdir, capsys):
+    old = dataclasses.replace(TRUTH, machine="bench-lathe")  # as written before envelopes: none
+    save_model(old, "old.model.toml")
+    assert main(["model", "show", "old.model.toml"]) == 0
+    assert "plausibility envelope: none" in capsys.readouterr().out
+    assert main(["model", "envelope", "--profile", "lathe.toml", "old.model.toml", "exp1.csv", "exp2.csv",
+                 "-o", "new.model.toml"]) == 0
+    env = load_model("new.model.toml").envelope
+    profile = load_profile("lathe.toml")
+    preds = [estimate(TRUTH, read_for_profile(f, profile)).estimated for f in ("exp1.csv", "exp2.csv")]
+    for i, a in enumerate(TRUTH.axes):  # the true peak, up to the measurement's noise (0.05 um)
+        assert env.axes[a].max_abs_um == pytest.approx(max(np.max(np.abs(p[i])) for p in preds), abs=0.3), a
+        change = max(np.max(np.abs(np.diff(p[i], prepend=0.0))) for p in preds)  # the model's own, exactly
+        assert env.axes[a].max_change_um == pytest.approx(change, rel=1e-9), a
+    assert env.axes["z"].max_abs_um > 10.0
+    assert load_model("old.model.toml").envelope is None  # -o leaves the original as it was
+    assert main(["model", "show", "new.model.toml"]) == 0
+    assert "z: |displacement| up to" in capsys.readouterr().out
+
+
 def test_paper_method_from_the_cli(workdir, capsys):
     write(Path("exp3.csv"), [(30, {}), (60, {"speed": 1600, "i_sq": 20}), (510, {})], 4)
     # two co-varying factors need two experiments in different ratios; a third in another ratio breaks (1)
@@ -108,7 +131,8 @@ def test_paper_method_from_the_cli(workdir, capsys):
      "cncgw: error: lathe.model.toml: model file not found; create it with `cncgw identify --profile lathe.toml "
      "EXPERIMENTS... -o lathe.model.toml`"),
     (["estimate", "--profile", "lathe.toml", "--model", "lathe.toml", "val.csv"], 5,
-     'cncgw: error: lathe.toml:2: machine: unknown key (expected one of: format, info, model, path, reference, units)'),
+     'cncgw: error: lathe.toml:2: machine: unknown key (expected one of: envelope, format, info, model, path, reference, '
+     'units)'),
     (["identify", "--profile", "lathe.toml", "exp1.csv", "--period-s", "-3"], 2,
      "argument --period-s: expected a number > 0, got '-3'"),
     (["identify", "--profile", "lathe.toml", "exp1.csv", "--structures", "third_order"], 2,

@@ -19,6 +19,7 @@ from gateway.clock import ManualClock
 from gateway.compensation import CompensationWriter
 from gateway.live.audit import AuditLog
 from gateway.live.estimator import EstimateUpdate
+from gateway.live.plausibility import AxisBound, Plausibility
 from gateway.live.settings import Compensation, default_axes
 from simulators.devices import CompensationConfig, DeviceSet, DeviceSetConfig
 
@@ -127,18 +128,46 @@ def test_bad_or_nan_inputs_hold_the_last_value_with_an_alarm_then_resume_without
     try:
         feed(w, clock, update(0, z=-0.8))
         assert cnc.update().applied_um["z"] == pytest.approx(0.8)
-        feed(w, clock, update(1, usable=False, reason="window 1 insufficient; devices in error: adc", z=-7.0),
-             update(2, z=math.nan), update(3, x=math.inf))
-        assert "inputs" in w.alarms
-        assert [a.message for a in w.alarms.active()] == ["holding the offsets: estimate not finite: x +inf um, "
-                                                          "y +0.00 um, z +0.00 um"]
-        assert len(list(audit.writes())) == 1  # nothing written while inputs were bad
+        feed(w, clock, update(1, usable=False, reason="window 1 insufficient; devices in error: adc", z=-7.0))
+        assert [a.message for a in w.alarms.active()] == ["holding the offsets: window 1 insufficient; devices in "
+                                                          "error: adc"]
+        feed(w, clock, update(2, z=math.nan), update(3, x=math.inf))  # good inputs, a model gone wrong
+        assert "inputs" not in w.alarms
+        assert [a.message for a in w.alarms.active()] == ["holding the offsets: window 3: estimate not finite: "
+                                                          "x +inf um, y +0.00 um, z +0.00 um"]
+        assert len(list(audit.writes())) == 1  # nothing written while inputs or estimates were bad
         assert cnc.update().applied_um["z"] == pytest.approx(0.8)  # held
         feed(w, clock, update(4, z=-7.0))
-        assert "inputs" not in w.alarms
+        assert w.alarms.active() == []
         assert cnc.update().applied_um["z"] == pytest.approx(1.8)  # one step from the held value
-        events = [(k, n) for _, k, n, _ in audit.events() if n == "inputs"]
-        assert events == [("alarm", "inputs")] * 3 + [("clear", "inputs")]  # each new reason audited
+        events = [(k, n) for _, k, n, _ in audit.events() if n in ("inputs", "implausible")]
+        assert events == [("alarm", "inputs"), ("clear", "inputs"), ("alarm", "implausible"),
+                          ("alarm", "implausible"), ("clear", "implausible")]  # each new reason audited
+    finally:
+        w.stop()
+
+
+def test_an_implausible_estimate_holds_the_offsets_and_is_never_clamped_and_written(cnc, clock, audit):
+    bounds = {a: AxisBound(axis=a, abs_um=30.0, change_um=4.0, origin="test bounds") for a in AXES}
+    w = make_writer(settings(cnc, max_step_um=1.0, limit_um=100.0), clock, audit,
+                    plausibility=Plausibility(bounds, source="test"))
+    try:
+        feed(w, clock, *(update(i, z=-0.8 * (i + 1)) for i in range(3)))  # -0.8, -1.6, -2.4 um
+        assert cnc.update().applied_um["z"] == pytest.approx(2.4)
+        writes = len(list(audit.writes()))
+        feed(w, clock, update(3, z=-1e6))  # finite, absurd: once this was clamped to 100 um and walked there
+        assert [a.name for a in w.alarms.active()] == ["implausible"]
+        assert "z estimate -1e+06 um is beyond +-30 um (test bounds)" in w.alarms.active()[0].message
+        feed(w, clock, update(4, z=-12.0))  # within +-30 um, but 9.6 um from the last plausible in 2 windows
+        assert "moved -9.6 um in 2 window(s) from -2.4 um at window 2" in w.alarms.active()[0].message
+        assert len(list(audit.writes())) == writes  # held: nothing written
+        assert cnc.update().applied_um["z"] == pytest.approx(2.4)
+        feed(w, clock, update(5, z=-5.0))  # 2.6 um in 3 windows: plausible again, one step on
+        assert w.alarms.active() == []
+        assert cnc.update().applied_um["z"] == pytest.approx(3.4)
+        names = [n for _, k, n, _ in audit.events() if k == "alarm"]
+        assert "clamped" not in names
+        assert names.count("implausible") == 2
     finally:
         w.stop()
 

@@ -88,7 +88,7 @@ def diagnosed_model() -> ThermalModel:
     return ThermalModel(axes=("x", "z"), factors=("spindle_speed", "spindle_i1_sq"),
                         units={"spindle_speed": "rpm", "spindle_i1_sq": "A^2"},
                         reference={"spindle_speed": 0.0, "spindle_i1_sq": 4.0},
-                        paths={(p.axis, p.factor): p for p in paths}, inputs=inputs)
+                        paths={(p.axis, p.factor): p for p in paths}, inputs=inputs, machine="derived")
 
 
 def stats(value: float) -> ChannelStats:

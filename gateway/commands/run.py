@@ -93,8 +93,10 @@ def run(args: argparse.Namespace) -> int:
         raise GatewayError(f"--rt-priority must be in 0..99. Got {args.rt_priority}")
     model, model_path = load_model_for(profile, args.model)
     from gateway.live.estimator import column_channel_problems
+    from gateway.live.plausibility import model_refusals
 
     problems = column_channel_problems(model, [c.name for c in profile.channels])
+    problems += model_refusals(model, profile.name, profile.compensation)
     if problems:
         raise ModelError("\n".join(f"{model_path}: {p}" for p in problems))
     _configure_logging(args.log_format, getattr(args, "verbose", 0))

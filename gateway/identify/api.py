@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 
 import numpy as np
@@ -16,6 +16,7 @@ from gateway.errors import IdentificationError
 from gateway.identify.common import ExperimentSet
 from gateway.identify.joint import CANDIDATES, AxisSelection, select_axis
 from gateway.identify.paper import active_factors, describe_groups, identify_paper
+from gateway.model.envelope import envelope_of
 from gateway.model.model import ThermalModel
 from gateway.prepare import prepare
 from gateway.recording import Recording
@@ -135,6 +136,10 @@ def _identify(
     info["deviation_range"] = {f: [float(es.du[j].min()), float(es.du[j].max())] for j, f in enumerate(factors)}
     model = ThermalModel(axes=tuple(axes), factors=tuple(factors), units=dict(units or {}), reference=reference,
                          paths={(p.axis, p.factor): p for p in paths}, machine=machine, info=info)
+    # what these experiments support: the live gateway holds the offsets beyond it (gateway.live.plausibility)
+    envelope = envelope_of(model, ((p.du, p.y) for p in preps), window_s=es.dt_s,
+                           source=f"identification: {len(preps)} experiments")
+    model = replace(model, envelope=envelope)
     return IdentifyResult(model=model, method=method, experiments=es.names, wall_s=time.perf_counter() - t0,
                           report=report, selections=selections, notes=notes)
 

@@ -27,9 +27,11 @@ from typing import Any
 from drivers.base import Driver
 from gateway.clock import Clock, ManualClock
 from gateway.compensation import CompensationWriter
+from gateway.errors import ModelError
 from gateway.live.audit import AUDIT_NAME, Alarms, AuditLog
 from gateway.live.cnc import CncLink
 from gateway.live.estimator import EstimateUpdate, Estimator, history_windows
+from gateway.live.plausibility import Plausibility, model_refusals
 from gateway.model import ThermalModel
 from gateway.profile import Profile
 from gateway.records import STORE_NAME, RecordStore
@@ -78,6 +80,7 @@ class LiveGateway:
         self.alarms: Alarms | None = None
         self.estimator: Estimator | None = None
         self.writer: CompensationWriter | None = None
+        self.plausibility: Plausibility | None = None
         self.opcua: Any = None
         self.acquisition: Any = None
         self.outputs: list[Any] = []  # outputs beside OPC UA (gateway.outputs): MQTT
@@ -107,6 +110,10 @@ class LiveGateway:
         from gateway.sampler import Acquisition
 
         p = self.profile
+        refusals = model_refusals(self.model, p.name, p.compensation)
+        if refusals:  # before anything is created or connected
+            raise ModelError("\n".join(refusals))
+        self.plausibility = Plausibility.for_model(self.model, p.compensation, window_s=p.sampling.window_s)
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self.store = RecordStore(self.data_dir / STORE_NAME, profile=p)
         self.audit = AuditLog(self.data_dir / AUDIT_NAME)
@@ -115,6 +122,12 @@ class LiveGateway:
         self.started_s, self.started_wall = now, time.monotonic()
         mode = "writing" if p.compensation.enabled else "dry run"
         self.audit.event(now, "start", "gateway", f"{p.name}: compensation {mode}")
+        bounds = f"plausible estimates ({self.plausibility.source}): {self.plausibility.describe()}"
+        self.audit.event(now, "plausibility", "model", bounds)
+        log.info("%s", bounds)
+        if self.model.envelope is None:
+            log.warning("the model has no plausibility envelope: a dry run bounds its estimates by limit_um; "
+                        "writing to the CNC will refuse it (re-run cncgw identify)")
 
         self.estimator = Estimator(self.model, window_s=p.sampling.window_s, live=p.live,
                                    channels={f.name: f.channel for f in p.factors},
@@ -133,7 +146,7 @@ class LiveGateway:
 
         self.writer = CompensationWriter(p.compensation, clock=self.clock, window_s=p.sampling.window_s,
                                          stale_after_s=p.live.stale_after_s, alarms=self.alarms, audit=self.audit,
-                                         link_factory=self._link_factory)
+                                         link_factory=self._link_factory, plausibility=self.plausibility)
         if not self.stepped:
             self.writer.start()
         else:

@@ -60,6 +60,9 @@ class AxisOutput:
     unit_um: float = 0.1
     data_type: str = "int32"
     word_order: str = "big"
+    #: tighten the model's plausibility bounds (never widen them): |estimate| and change per window, in um
+    plausible_um: float | None = None
+    plausible_change_um: float | None = None
 
     @property
     def n_registers(self) -> int:
@@ -226,6 +229,11 @@ def _parse_axis(name: str, t: Table) -> AxisOutput | None:
     unit = t.float("unit_um", default=0.1, min=0.0, min_exclusive=True, max=1000.0)
     data_type = t.str("data_type", default="int32", choices=DATA_TYPES)
     order = t.str("word_order", default="big", choices=ORDERS)
+    plausible = t.float("plausible_um", default=None, min=0.0, min_exclusive=True,
+                        expected="a bound on |estimate| in um > 0 (tightens the model's envelope)")
+    plausible_change = t.float("plausible_change_um", default=None, min=0.0, min_exclusive=True,
+                               expected="a bound on the estimate's change per window in um > 0 (tightens the "
+                                        "model's envelope)")
     t.done()
     if sign is not None and sign not in (-1.0, 1.0):
         t.problem("sign", f"expected -1 or 1, got {sign:g}")
@@ -239,7 +247,8 @@ def _parse_axis(name: str, t: Table) -> AxisOutput | None:
                            f"expected an address in 0..{65536 - words} (the last register is 65535)")
             return None
     return AxisOutput(axis=name, register=register, readback=readback, sign=sign, unit_um=unit,
-                      data_type=data_type, word_order=order)
+                      data_type=data_type, word_order=order, plausible_um=plausible,
+                      plausible_change_um=plausible_change)
 
 
 def _check_compensation(t: Table, c: Compensation, *, explicit: bool, window_s: float) -> None:

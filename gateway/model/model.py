@@ -21,6 +21,7 @@ import tomli_w
 from gateway.errors import ModelError
 from gateway.model import limits
 from gateway.model.discrete import Section
+from gateway.model.envelope import Envelope, envelope_to_toml, parse_envelope
 from gateway.model.inputs import DerivedInput, check_order, input_to_toml, parse_inputs
 from gateway.model.terms import TERM_KINDS, FirstOrder, SecondOrder, Term
 from gateway.tomlcheck import Table, TomlDoc
@@ -121,6 +122,8 @@ class ThermalModel:
     info: Mapping[str, Any] = field(default_factory=dict)
     #: derived inputs (computed from recorded columns), after the factors in :attr:`input_names`
     inputs: tuple[DerivedInput, ...] = ()
+    #: what the identification data support (:mod:`gateway.model.envelope`); ``None`` in older files
+    envelope: Envelope | None = None
 
     def __post_init__(self) -> None:
         if len(set(self.axes)) != len(self.axes) or len(set(self.factors)) != len(self.factors):
@@ -176,7 +179,7 @@ class ThermalModel:
                 and {k: _path_key(v) for k, v in self.paths.items()}
                 == {k: _path_key(v) for k, v in other.paths.items()}
                 and self.machine == other.machine and _plain(self.info) == _plain(other.info)
-                and self.inputs == other.inputs)
+                and self.inputs == other.inputs and self.envelope == other.envelope)
 
     __hash__ = None  # type: ignore[assignment]
 
@@ -336,6 +339,8 @@ def model_to_toml(model: ThermalModel) -> str:
         doc["info"] = _plain(model.info)
     if model.inputs:
         doc["inputs"] = {d.name: input_to_toml(d) for d in model.inputs}
+    if model.envelope is not None:
+        doc["envelope"] = envelope_to_toml(model.envelope)
     paths = []
     for a in model.axes:
         for f in model.input_names:
@@ -394,6 +399,8 @@ def load_model(path: str | Path, *, text: str | None = None) -> ThermalModel:
     units = _name_table(root.table("units"), factors, lambda t, f: t.str(f))
     reference = _name_table(root.table("reference"), factors, lambda t, f: t.float(
         f, min=-limits.REFERENCE_MAX, max=limits.REFERENCE_MAX, expected=limits.REFERENCE_EXPECTED))
+    env_t = root.table("envelope")
+    envelope = parse_envelope(env_t, axes) if env_t is not None else None
     info_t = root.table("info")
     info = _parse_info(info_t, factors) if info_t is not None else {}
 
@@ -415,7 +422,7 @@ def load_model(path: str | Path, *, text: str | None = None) -> ThermalModel:
     root.done()
     doc.raise_problems()
     return ThermalModel(axes=axes, factors=factors, units=units, reference=reference, paths=paths,
-                        machine=machine, info=info, inputs=tuple(inputs))
+                        machine=machine, info=info, inputs=tuple(inputs), envelope=envelope)
 
 
 def _name_table(t: Table | None, factors: Sequence[str], get: Callable[[Table, str], Any]) -> dict[str, Any]:
