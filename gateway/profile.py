@@ -25,6 +25,7 @@ from drivers.base import FASTEST_PERIOD_S
 from gateway.errors import ProfileError
 from gateway.live.settings import Compensation, Live, OpcUa, parse_compensation, parse_live, parse_opcua
 from gateway.outputs.mqtt import Mqtt, parse_mqtt
+from gateway.recording import MAX_PERIOD_S, MIN_PERIOD_S
 from gateway.tomlcheck import NAME, Table, TomlDoc
 
 __all__ = ["Channel", "Compensation", "Device", "Factor", "Live", "OpcUa", "Profile", "RecordingLayout", "Sampling",
@@ -173,7 +174,8 @@ def load_profile(path: str | Path) -> Profile:
     time_column, period_s, disp_cols = "time_s", window, {a: f"{a}_um" for a in axes}
     if rec_t is not None:
         time_column = rec_t.str("time_column", default="time_s")
-        period_s = rec_t.float("period_s", default=window, min=0.0, min_exclusive=True) or window
+        period_s = rec_t.float("period_s", default=window, min=MIN_PERIOD_S, max=MAX_PERIOD_S,
+                               expected=f"a row period from {MIN_PERIOD_S:g} s to {MAX_PERIOD_S:g} s (a day)") or window
         cols_t = rec_t.table("displacement_columns")
         if cols_t is not None:
             for a in axes:

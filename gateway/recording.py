@@ -18,6 +18,11 @@ Format (one row per window, normally one minute)::
   missing required column is an error naming the file, the row (file line) and the column.
 - Gaps stay explicit: rows are placed on a regular grid of the nominal period, and a missing window is a
   row of NaN with ``present[k] == False``, never an interpolated value.
+- Bounds (each an error naming file, line and column): numbers are plain decimals with an optional
+  exponent (``-1.5``, ``2e-3``; not ``1_000``, ``0x10``, ``infinity`` or non-ASCII digits) of magnitude at
+  most ``MAX_ABS_VALUE``; times within +-``MAX_ABS_TIME_S``; one gap at most ``MAX_GAP_S`` and all gaps
+  together at most ``MAX_MISSING_WINDOWS`` windows (a longer pause is two recordings); a cell or line at
+  most ``csv.field_size_limit()`` characters; the row period from ``MIN_PERIOD_S`` to ``MAX_PERIOD_S``.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ import csv
 import io
 import math
 import os
+import re
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -42,6 +48,22 @@ if TYPE_CHECKING:
 
 FORMAT_LINE = "cncgw recording 1"
 _MISSING_TOKENS = {"", "nan", "NaN", "NAN", "na", "NA", "n/a", "N/A", "null", "NULL", "-"}
+#: plain decimal with an optional exponent, ASCII digits only: what a logger writes. float() also takes
+#: "1_000", "infinity" and Arabic-Indic digits, which are not numbers in a recording.
+_NUMBER = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_INFINITE = {"inf", "+inf", "-inf", "infinity", "+infinity", "-infinity"}
+
+#: no sensor or CNC signal reads beyond this (in its unit); larger values overflow the fits that square them
+MAX_ABS_VALUE = 1e15
+#: time stamps: seconds within +-1e11 (an ISO 8601 stamp before the year 5138)
+MAX_ABS_TIME_S = 1e11
+#: the longest gap between two rows of one recording: longer, it is two recordings
+MAX_GAP_S = 7 * 86400.0
+#: missing windows a recording may hold in all (each one a row of NaN in memory)
+MAX_MISSING_WINDOWS = 1_000_000
+#: the row period: 0.5 ms (the fastest sampling a profile allows) to a day
+MIN_PERIOD_S = 5e-4
+MAX_PERIOD_S = 86400.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -125,18 +147,32 @@ def _gaps_from_mask(time_s: np.ndarray, present: np.ndarray) -> tuple[Gap, ...]:
 
 
 # --------------------------------------------------------------------------------------------------------
+def _parse_number(cell: str) -> float:
+    """A cell as a number (plain decimal, optional exponent); ValueError otherwise."""
+    if _NUMBER.fullmatch(cell) is None:
+        if cell.lower() in _INFINITE:
+            return math.inf
+        raise ValueError(cell)
+    return float(cell)
+
+
 def _parse_time(cell: str) -> float:
     try:
-        return float(cell)
+        return _parse_number(cell)
     except ValueError:
         pass
     text = cell.strip()
+    if not text.isascii():
+        raise ValueError(cell)
     if text.endswith(("Z", "z")):
         text = text[:-1] + "+00:00"
     stamp = datetime.fromisoformat(text)  # raises ValueError
     if stamp.tzinfo is None:
         stamp = stamp.replace(tzinfo=UTC)
-    return stamp.timestamp()
+    try:
+        return stamp.timestamp()
+    except (OverflowError, OSError) as exc:
+        raise ValueError(cell) from exc
 
 
 def read_recording(
@@ -156,8 +192,9 @@ def read_recording(
     displacement columns are an error only when ``require_displacement``.
     """
     path = Path(path)
-    if not period_s > 0:
-        raise RecordingError(f"{path}: the row period must be > 0 s. Got {period_s!r}")
+    if not MIN_PERIOD_S <= period_s <= MAX_PERIOD_S:
+        raise RecordingError(f"{path}: the row period must be from {MIN_PERIOD_S:g} s to {MAX_PERIOD_S:g} s (a day), "
+                             f"got {period_s!r}")
     if text is None:
         try:
             text = path.read_text(encoding="utf-8-sig")
@@ -172,7 +209,7 @@ def read_recording(
     header: list[str] | None = None
     header_line = 0
     rows: list[tuple[int, list[str]]] = []
-    for lineno, cells in _csv_rows(text):
+    for lineno, cells in _csv_rows(text, path):
         first = cells[0].strip() if cells else ""
         if not any(c.strip() for c in cells):
             continue
@@ -233,8 +270,12 @@ def read_recording(
             try:
                 times[r] = _parse_time(cell)
             except ValueError:
-                raise RecordingError(f'{path}:{lineno}: column "{time_column}": "{cell}" is not a time: '
-                                     "expected seconds or an ISO 8601 stamp") from None
+                raise RecordingError(f'{path}:{lineno}: column "{time_column}": "{_clip(cell)}" is not a time: '
+                                     "expected seconds (a plain decimal number) or an ISO 8601 stamp") from None
+            if not abs(times[r]) <= MAX_ABS_TIME_S:
+                raise RecordingError(f'{path}:{lineno}: column "{time_column}": "{_clip(cell)}" is out of range: '
+                                     f"expected seconds within +-{MAX_ABS_TIME_S:g} (an ISO 8601 stamp before "
+                                     "the year 5138)")
         else:
             times[r] = r * period_s
         for i, h in enumerate(header):
@@ -243,17 +284,25 @@ def read_recording(
             cell = cells[i].strip()
             if h in text_cells:
                 text_cells[h].append(cell)
-            if cell in _MISSING_TOKENS:
+            if cell in _MISSING_TOKENS or cell.lower() == "nan":
+                continue
+            if h in non_numeric:
                 continue
             try:
-                value = float(cell)
+                value = _parse_number(cell)
             except ValueError:
                 if i in numeric_needed:
-                    raise RecordingError(f'{path}:{lineno}: column "{h}": "{cell}" is not a number') from None
+                    raise RecordingError(f'{path}:{lineno}: column "{h}": "{_clip(cell)}" is not a number: expected '
+                                         "a plain decimal such as -12.5 or 1.2e-3") from None
                 non_numeric.add(h)
                 continue
-            if math.isinf(value) and i in numeric_needed:
-                raise RecordingError(f'{path}:{lineno}: column "{h}": "{cell}" is not a finite number')
+            if not abs(value) <= MAX_ABS_VALUE:
+                if i in numeric_needed:
+                    what = ("is not a finite number" if math.isinf(value) else
+                            f"is out of range: expected a magnitude of at most {MAX_ABS_VALUE:g} (in its unit)")
+                    raise RecordingError(f'{path}:{lineno}: column "{h}": "{_clip(cell)}" {what}')
+                non_numeric.add(h)  # an extra column of such numbers (nanosecond stamps, ids) is kept as text
+                continue
             data[r, i] = value
 
     if n and not np.all(np.isfinite(times)):
@@ -272,6 +321,17 @@ def read_recording(
         raise RecordingError(
             f'{path}:{rows[k + 1][0]}: column "{time_column}": rows only {steps[k]:g} s apart, expected the '
             f"row period of {period_s:g} s (set the period to the file's own if it differs)")
+    if np.any(steps > MAX_GAP_S + period_s):
+        k = int(np.flatnonzero(steps > MAX_GAP_S + period_s)[0])
+        raise RecordingError(
+            f'{path}:{rows[k + 1][0]}: column "{time_column}": {times[k + 1]:g} s comes {steps[k]:g} s after '
+            f"{times[k]:g} s on line {rows[k][0]}: expected gaps of at most {MAX_GAP_S:g} s (7 days); a longer "
+            "pause is two recordings: split the file there")
+    missing = float(np.sum(np.maximum(np.rint(ratio) - 1.0, 0.0))) if n else 0.0
+    if missing > MAX_MISSING_WINDOWS:
+        raise RecordingError(
+            f'{path}: column "{time_column}": the gaps add up to {missing:.0f} missing windows of {period_s:g} s: '
+            f"expected at most {MAX_MISSING_WINDOWS} (split the recording, or give the row period it really has)")
     slots = np.concatenate([[0], np.cumsum(np.maximum(1, np.rint(ratio).astype(int)))]) if n else np.zeros(0, int)
     total = int(slots[-1]) + 1 if n else 0
     present = np.zeros(total, dtype=bool)
@@ -296,10 +356,25 @@ def read_recording(
     )
 
 
-def _csv_rows(text: str) -> Iterable[tuple[int, list[str]]]:
+def _csv_rows(text: str, path: Path) -> Iterable[tuple[int, list[str]]]:
     reader = csv.reader(io.StringIO(text))
-    for cells in reader:
+    while True:
+        try:
+            cells = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as exc:  # a cell over the field size limit, a NUL character, a runaway quote
+            line = reader.line_num
+            if "field larger than field limit" in str(exc):
+                raise RecordingError(f"{path}:{line}: a cell or comment longer than {csv.field_size_limit()} "
+                                     "characters: expected the cells of one window") from None
+            raise RecordingError(f"{path}:{line}: not readable as CSV: {exc}") from None
         yield reader.line_num, cells
+
+
+def _clip(cell: str, width: int = 40) -> str:
+    """A cell for a message: long ones shortened."""
+    return cell if len(cell) <= width else f"{cell[:width]}... ({len(cell)} characters)"
 
 
 def read_for_profile(path: str | Path, profile: Profile, *, period_s: float | None = None,

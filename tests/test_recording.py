@@ -62,7 +62,7 @@ def test_no_time_column_needs_period():
     ("time_s,speed_rpm,i1_sq,z_um\n60,0,1,0\n60,0,1,0\n",
      'rec.csv:3: column "time_s": time does not increase (60 s after 60 s on line 2); expected strictly increasing time'),
     ("time_s,speed_rpm,i1_sq,z_um\n60,0,1,0\n120,fast,1,0\n",
-     'rec.csv:3: column "speed_rpm": "fast" is not a number'),
+     'rec.csv:3: column "speed_rpm": "fast" is not a number: expected a plain decimal such as -12.5 or 1.2e-3'),
     ("time_s,speed_rpm,i_sq,z_um\n60,0,1,0\n",
      'rec.csv:1: missing column "i1_sq" (factor i1) (did you mean "i_sq"?); columns are: time_s, speed_rpm, i_sq, z_um'),
     ("time_s,speed_rpm,i1_sq\n60,0,1\n",
@@ -70,7 +70,8 @@ def test_no_time_column_needs_period():
     ("time_s,speed_rpm,i1_sq,z_um\n60,0,1\n",
      "rec.csv:2: row has 3 cells, expected 4 (one per column of the header on line 1)"),
     ("time_s,speed_rpm,i1_sq,z_um\nyesterday,0,1,0\n",
-     'rec.csv:2: column "time_s": "yesterday" is not a time: expected seconds or an ISO 8601 stamp'),
+     'rec.csv:2: column "time_s": "yesterday" is not a time: expected seconds (a plain decimal number) or an ISO '
+     "8601 stamp"),
     ("time_s,speed_rpm,i1_sq,z_um\n60,0,1,0\n70,0,1,0\n",
      'rec.csv:3: column "time_s": rows only 10 s apart, expected the row period of 60 s '
      "(set the period to the file's own if it differs)"),
@@ -82,6 +83,62 @@ def test_bad_files_name_file_line_and_column(text, message):
     with pytest.raises(RecordingError) as err:
         read(text)
     assert str(err.value) == message
+
+
+H = "time_s,speed_rpm,i1_sq,z_um\n"
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    # each was read as a number, or ended in a traceback, a MemoryError or millions of gap windows
+    (H + "60,1_000,1,0\n", 'rec.csv:2: column "speed_rpm": "1_000" is not a number: expected a plain decimal such as '
+                           "-12.5 or 1.2e-3"),
+    (H + "60,\u0661\u0662\u0663,1,0\n", 'rec.csv:2: column "speed_rpm": "\u0661\u0662\u0663" is not a number: '
+                                        "expected a plain decimal such as -12.5 or 1.2e-3"),
+    (H + "60,0x10,1,0\n", 'rec.csv:2: column "speed_rpm": "0x10" is not a number: expected a plain decimal such as '
+                          "-12.5 or 1.2e-3"),
+    (H + "60,0,1,0\n1_20,0,1,0\n", 'rec.csv:3: column "time_s": "1_20" is not a time: expected seconds (a plain '
+                                   "decimal number) or an ISO 8601 stamp"),
+    (H + "60,1e308,1,0\n", 'rec.csv:2: column "speed_rpm": "1e308" is out of range: expected a magnitude of at most '
+                           "1e+15 (in its unit)"),
+    (H + "60,-Infinity,1,0\n", 'rec.csv:2: column "speed_rpm": "-Infinity" is not a finite number'),
+    (H + "60,0,1,0\n1e12,0,1,0\n", 'rec.csv:3: column "time_s": "1e12" is out of range: expected seconds within '
+                                   "+-1e+11 (an ISO 8601 stamp before the year 5138)"),
+    (H + "60,0,1,0\n1e300,0,1,0\n", 'rec.csv:3: column "time_s": "1e300" is out of range: expected seconds within '
+                                    "+-1e+11 (an ISO 8601 stamp before the year 5138)"),
+    (H + "-1e9,0,1,0\n60,0,1,0\n120,0,1,0\n",
+     'rec.csv:3: column "time_s": 60 s comes 1e+09 s after -1e+09 s on line 2: expected gaps of at most 604800 s '
+     "(7 days); a longer pause is two recordings: split the file there"),
+    (H + "60,0,1,0\n" + "".join(f"{k * 600000},0,1,0\n" for k in range(1, 120)),
+     'rec.csv: column "time_s": the gaps add up to 1189880 missing windows of 60 s: expected at most 1000000 (split '
+     "the recording, or give the row period it really has)"),
+    (H + "60," + "1" * 200_000 + ",1,0\n", "rec.csv:2: a cell or comment longer than 131072 characters: expected the "
+                                          "cells of one window"),
+    ("# " + "x" * 200_000 + "\n" + H, "rec.csv:1: a cell or comment longer than 131072 characters: expected the cells "
+                                      "of one window"),
+])
+def test_values_beyond_what_a_recording_holds_name_file_line_and_column(text, message):
+    with pytest.raises(RecordingError) as err:
+        read(text)
+    assert str(err.value) == message
+
+
+def test_the_largest_gap_allowed_is_read_as_explicit_missing_windows():
+    rec = read(H + "60,0,1,0\n" + f"{60 + 7 * 86400},0,1,0\n")
+    assert len(rec) == 7 * 1440 + 1
+    assert rec.gaps[0].rows == 7 * 1440 - 1
+
+
+@pytest.mark.parametrize("period_s", [1e-300, 1e-4, 86401.0, math.inf])
+def test_a_row_period_out_of_range_is_refused(period_s):
+    with pytest.raises(RecordingError, match=r"the row period must be from 0.0005 s to 86400 s \(a day\), got "):
+        read("speed_rpm,i1_sq,z_um\n0,1,0\n", time_column=None, period_s=period_s)
+
+
+def test_other_nan_spellings_are_missing_and_huge_extra_numbers_are_kept_as_text():
+    rec = read("time_s,speed_rpm,i1_sq,z_um,stamp_ns\n60,Nan,1,0,1716000000000000000\n120,1,1,0,1716000060000000000\n")
+    assert math.isnan(rec.factors["speed"][0])
+    assert rec.text["stamp_ns"] == ("1716000000000000000", "1716000060000000000")
+    assert "stamp_ns" not in rec.extras
 
 
 def test_displacement_optional_when_not_required():

@@ -27,6 +27,7 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
+from gateway.errors import IdentificationError
 from gateway.identify.common import (
     Bounds,
     ExperimentSet,
@@ -235,8 +236,13 @@ class AxisProblem:
         converged = True
         x = x0
         if x0.size:
-            sol = scipy.optimize.least_squares(residual, x0, jac=jacobian, bounds=(lo, hi), method="trf",
-                                               x_scale=1.0, max_nfev=max_nfev, xtol=1e-7, ftol=1e-6, gtol=1e-8)
+            try:
+                sol = scipy.optimize.least_squares(residual, x0, jac=jacobian, bounds=(lo, hi), method="trf",
+                                                   x_scale=1.0, max_nfev=max_nfev, xtol=1e-7, ftol=1e-6, gtol=1e-8)
+            except ValueError as exc:  # "Residuals are not finite": data far beyond what the filters can carry
+                raise IdentificationError(
+                    f"axis {self.es.axes[self.i]}: the fit cannot go on ({exc}): factor or displacement values "
+                    "too large to filter; check the recordings' units and outliers") from None
             x, nfev, converged = sol.x, sol.nfev, sol.status > 0
         thetas, per_path, coef, r, _ = evaluate(x)
         sizes_lin = [len(cols) for cols in per_path]
