@@ -9,7 +9,7 @@ A driver class provides two class methods the profile loader calls while checkin
 ``parse_channel_address(table)`` for the keys of a ``[channels.NAME]`` table on such a device (besides
 ``device`` and ``unit``). Both read with the typed getters of :class:`gateway.tomlcheck.Table`, so a bad key
 is reported with the others. ``link_budget(options, addresses)`` may say how fast the link can go (see
-:class:`drivers.base.Driver`). Built-in drivers: ``modbus_tcp``, ``modbus_rtu``, ``can``, ``dcon``.
+:class:`drivers.base.Driver`). Built-in drivers: ``modbus_tcp``, ``modbus_rtu``, ``can``, ``dcon``, ``opcua``.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ BUILTIN: dict[str, str] = {
     "modbus_rtu": "drivers.modbus_rtu:ModbusRtuDriver",
     "can": "drivers.can:CanDriver",
     "dcon": "drivers.dcon:DconDriver",
+    "opcua": "drivers.opcua:OpcUaDriver",
 }
 
 

@@ -313,6 +313,8 @@ def build_record(profile: Profile, index: int, partials: Mapping[str, DevicePart
                            saturated=0, bad=0)
     channels = {c: stats.get(c, missing) for c in channel_order}
     factors = {f.name: channels[f.channel].stat(f.stat) if f.channel in channels else nan for f in profile.factors}
+    if nominal_tick_s is not None:
+        _coarse_mean_square_notes(profile, channels, devices, nominal_tick_s, notes)
     status = "good"
     floor = profile.sampling.min_coverage
     for f in profile.factors:
@@ -335,3 +337,26 @@ def build_record(profile: Profile, index: int, partials: Mapping[str, DevicePart
                         channels=MappingProxyType(channels), devices=MappingProxyType(devices),
                         displacement=MappingProxyType(displacement), burst_revolutions=MappingProxyType(revolutions),
                         notes=tuple(dict.fromkeys(notes)))
+
+
+#: relative standard error of a mean of squares from one sample of a full-wave rectified ripple |A sin wt|:
+#: sqrt(var(x^2)) / mean(x^2) = sqrt(A^4 / 8) / (A^2 / 2)
+RIPPLE_SQUARE_SPREAD = math.sqrt(0.5)
+
+
+def _coarse_mean_square_notes(profile: Profile, channels: Mapping[str, ChannelStats],
+                              devices: Mapping[str, DeviceQuality], nominal_tick_s: float, notes: list[str]) -> None:
+    """Say what a coarser tick does to each mean-of-squares factor (see drivers/opcua.py's docstring)."""
+    device_of = {c.name: c.device for c in profile.channels}
+    for f in profile.factors:
+        if f.stat is not Stat.MEAN_SQUARE or f.channel not in device_of:
+            continue
+        dq = devices.get(device_of[f.channel])
+        c = channels.get(f.channel)
+        if dq is None or c is None or not c.count or not dq.tick_s > 1.5 * nominal_tick_s:
+            continue
+        se = RIPPLE_SQUARE_SPREAD / math.sqrt(c.count)
+        notes.append(f"factor {f.name}: the mean of squares of {f.channel} from {c.count} samples every "
+                     f"{dq.tick_s * 1000:g} ms is unbiased for a ripple not locked to the sampling, with a relative "
+                     f"standard error of up to {se:.1%} (a full-wave rectified ripple); a ripple at a multiple of "
+                     f"{1 / dq.tick_s:g} Hz aliases to a constant and can bias it by up to +-100 %")

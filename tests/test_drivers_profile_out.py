@@ -63,3 +63,21 @@ def test_profile_out_points_compensation_at_the_simulated_cnc(tmp_path, capsys, 
     assert f"modbus-tcp://{comp.host}:{comp.port} " in printed  # the CNC served is the one written
     assert comp.watchdog_s == watchdog_s  # default at 60x: half a wall second, 30 s of clock time
     assert comp.heartbeat_period_s == pytest.approx(watchdog_s / 5)
+
+
+def test_profile_out_via_opcua_reads_the_cncs_own_server(tmp_path, capsys):
+    out = tmp_path / "live.toml"
+    code = main(["simulate", "serve", "spindle-1000rpm", "--speedup", "60", "--duration", "0.2",
+                 "--profile-out", str(out), "--via", "opcua"])
+    printed = capsys.readouterr().out
+    assert code == 0
+    profile = load_profile(out)
+    (device,) = profile.devices
+    assert (device.driver, device.period_s, device.options.mode) == ("opcua", 0.01, "poll")
+    assert f"CNC OPC UA server            {device.options.endpoint}" in printed
+    assert sorted(c.name for c in profile.channels) == sorted(
+        ["spindle_speed", "spindle_i1", "spindle_i2", "x_velocity", "y_velocity", "z_velocity", "x_current",
+         "y_current", "z_current"])
+    speed = next(c for c in profile.channels if c.name == "spindle_speed")
+    assert speed.address.browse_path == ("2:CncInterface", "2:CncSpindleList", "2:Spindle", "2:ActSpeed")
+    assert {c.unit for c in profile.channels} == {"rpm", "A", "mm/min"}

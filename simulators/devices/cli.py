@@ -44,8 +44,10 @@ def add_actions(actions: argparse._SubParsersAction) -> None:
     p.add_argument("--profile-out", metavar="FILE",
                    help="write the bundled profile with the live address of the device --via to FILE once serving "
                         "(ports are chosen at start and pseudo-terminal paths are temporary)")
-    p.add_argument("--via", choices=("adc-tcp", "adc-rtu", "adc-rtu-line", "can-slcan", "dcon"), default="adc-tcp",
-                   help="the device the --profile-out profile reads the channels from (default adc-tcp)")
+    p.add_argument("--via", choices=("adc-tcp", "adc-rtu", "adc-rtu-line", "can-slcan", "dcon", "opcua"),
+                   default="adc-tcp",
+                   help="the device the --profile-out profile reads the channels from (default adc-tcp; opcua: "
+                        "the CNC's own OPC UA server, started only then)")
     p.add_argument("--cnc-watchdog-s", type=float, default=None, metavar="S",
                    help="the CNC's heartbeat watchdog in clock seconds (default 5 s, raised to 0.5 s of wall time "
                         "at high --speedup so a busy machine does not trip it)")
@@ -87,6 +89,10 @@ def run_serve(args: argparse.Namespace) -> int:
 
         first, second = rtu_line_boards(config.adc)
         config = dataclasses.replace(config, adc=first, adc_rtu_more=(second,))
+    if args.via == "opcua":
+        from simulators.devices.opcua_cnc import OpcUaCncConfig
+
+        config = dataclasses.replace(config, cnc_opcua=OpcUaCncConfig())
     if args.profile_out:
         from simulators.devices.profile_out import profile_for
 

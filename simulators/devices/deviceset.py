@@ -29,6 +29,7 @@ from simulators.devices.dcon import DEFAULT_DCON_CONFIG, DconLine, DconLineConfi
 from simulators.devices.faults import Faults
 from simulators.devices.modbus_adc import ModbusAdc
 from simulators.devices.modbus_base import RtuBus, RtuTransport, TcpTransport
+from simulators.devices.opcua_cnc import OpcUaCnc, OpcUaCncConfig
 from simulators.devices.runtime import DeviceLoop, check_loopback
 from simulators.live import LiveSource
 
@@ -72,6 +73,8 @@ class DeviceSetConfig:
     dcon: DconLineConfig | None = DEFAULT_DCON_CONFIG
     cnc: CompensationConfig | None = field(default_factory=CompensationConfig)
     cnc_port: int = 0
+    #: the CNC's own OPC UA server with the drive signals (off by default: its start takes about a second)
+    cnc_opcua: OpcUaCncConfig | None = None
 
     def __post_init__(self) -> None:
         check_loopback(self.host)
@@ -90,7 +93,8 @@ class DeviceSet:
 
     Attributes (``None`` when left out by the config): ``adc_tcp``, ``adc_rtu`` (:class:`ModbusAdc`; and
     ``adc_rtu_more``, a list, the boards on its line),
-    ``can`` (:class:`CanModule`), ``dcon`` (:class:`DconLine`), ``cnc`` (:class:`CompensationServer`).
+    ``can`` (:class:`CanModule`), ``dcon`` (:class:`DconLine`), ``cnc`` (:class:`CompensationServer`),
+    ``cnc_opcua`` (:class:`~simulators.devices.opcua_cnc.OpcUaCnc`).
     Each has ``faults`` and ``disconnect_clients()`` for fault injection.
     """
 
@@ -123,6 +127,8 @@ class DeviceSet:
             self.cnc = None if config.cnc is None else CompensationServer(
                 **common, config=config.cnc, name="cnc",
                 transport=TcpTransport(host=config.host, port=config.cnc_port))
+            self.cnc_opcua = None if config.cnc_opcua is None else OpcUaCnc(
+                **common, config=config.cnc_opcua, name="cnc-opcua")
         except BaseException:
             self._cleanup()
             raise
@@ -131,7 +137,7 @@ class DeviceSet:
     @property
     def devices(self) -> list[Device]:
         """Every device of the set, in start order."""
-        found = [self.adc_tcp, self.adc_rtu, *self.adc_rtu_more, self.can, self.dcon, self.cnc]
+        found = [self.adc_tcp, self.adc_rtu, *self.adc_rtu_more, self.can, self.dcon, self.cnc, self.cnc_opcua]
         return [d for d in found if d is not None]
 
     def start(self) -> DeviceSet:

@@ -4,7 +4,7 @@ Ports are 0 (any free port) and pseudo-terminal paths are temporary, so a gatewa
 simulators by a fixed profile. :func:`profile_for` takes ``profiles/sim-vmc.toml``, drops its own
 ``[devices]``/``[channels]`` tables and writes one device, ``VIA``, with channel tables generated from the
 device's live map (so the profile always matches what is served): the ADC board over Modbus TCP or RTU,
-the CAN module over slcan or the in-process virtual bus, or the DCON line.
+the CAN module over slcan or the in-process virtual bus, the DCON line, or the CNC's own OPC UA server.
 
 ``displacement=True`` also serves and reads the displacement sensors: :func:`adc_with_displacement` adds
 ``x_um``, ``y_um``, ``z_um`` as float32 um at input registers 120-125 to an ADC map, and the profile
@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     from simulators.devices.deviceset import DeviceSet
 
 BUNDLED_PROFILE = BUNDLED / "sim-vmc.toml"
-VIAS = ("adc-tcp", "adc-rtu", "adc-rtu-line", "can-slcan", "can-virtual", "dcon")
+VIAS = ("adc-tcp", "adc-rtu", "adc-rtu-line", "can-slcan", "can-virtual", "dcon", "opcua")
 #: ``adc-rtu-line``: the feed axes' motor currents on a second board (this address) on the ADC's RS-485 line
 LINE_BOARD_ID = 2
 LINE_BOARD_CHANNELS = ("x_current", "y_current", "z_current")
@@ -107,6 +107,18 @@ def acquisition_toml(devices: DeviceSet, via: str) -> str:
             raise ValueError("the device set serves no second board on the ADC's RS-485 line")
         blocks = ["\n".join(head), *_adc_channels(adc.config, "adc"),
                   *(b for board in more for b in _adc_channels(board.config, "adc", board.config.device_id))]
+    elif via == "opcua":
+        server = devices.cnc_opcua
+        if server is None:
+            raise ValueError("the device set serves no CNC OPC UA server")
+        period = max(server.config.update_period_s, 0.01)
+        blocks = ["\n".join(['[devices.cnc]', 'driver = "opcua"', f'endpoint = "{server.endpoint}"', 'mode = "poll"',
+                             f"period_s = {_num(period)}  # the CNC refreshes its OPC UA variables every "
+                             f"{server.config.update_period_s * 1000:g} ms", "timeout_s = 1.0"])]
+        for i, n in enumerate(server.config.nodes):
+            where = (f'browse_path = "{n.browse_path(server.ns or 2)}"' if i == 0 else
+                     f'node_id = "ns={server.ns};s={n.string_id}"')
+            blocks.append("\n".join([f"[channels.{n.channel}]", 'device = "cnc"', f'unit = "{n.unit}"', where]))
     elif via.startswith("can"):
         can = devices.can
         if can is None:
