@@ -36,7 +36,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from drivers.base import DeviceOptions, Driver, LinkBudget, Quality, parse_common_options
+from drivers.base import DeviceOptions, Driver, LinkBudget, Quality, parse_common_options, parse_scaling
 from gateway.errors import DriverError
 
 MODES = ("poll", "subscription")
@@ -115,8 +115,7 @@ class OpcUaDriver(Driver):
         node_id = table.str("node_id", default=None, expected='a node id such as "ns=2;s=Spindle.ActSpeed"')
         path = table.str("browse_path", default=None,
                          expected='browse names from the Objects folder, "Objects/2:Machine/2:Speed"')
-        scale = table.float("scale", default=1.0)
-        offset = table.float("offset", default=0.0)
+        scale, offset = parse_scaling(table, per="unit of the node's value")
         if (node_id is None) == (path is None):
             if "node_id" not in table and "browse_path" not in table:
                 table.problem(None, "expected node_id or browse_path (where the value is on the server)")
@@ -141,9 +140,6 @@ class OpcUaDriver(Driver):
                 table.problem("browse_path", f'expected at least one browse name below Objects, got "{path}"')
                 return None
         if scale is None or offset is None:
-            return None
-        if scale == 0:
-            table.problem("scale", "expected a non-zero number (engineering units per raw unit), got 0")
             return None
         return NodeAddress(node_id=node_id, browse_path=parts, scale=scale, offset=offset)
 
