@@ -161,14 +161,20 @@ class RecordStore:
                 raise RecordingError(f"{self.path}: window {record.index} is not after the last one stored "
                                      f"({self.last_index}); records are append-only")
             body = record_to_json(record)
-            self._db.execute(
-                "INSERT INTO windows (idx, start_s, end_s, status, coverage, samples_expected, samples_taken, "
-                "missed_ticks, largest_gap_s, devices_in_error, written_s, body) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (record.index, record.start_s, record.end_s, record.status, record.coverage,
-                 record.samples_expected, record.samples_taken, record.missed_ticks, record.largest_gap_s,
-                 ",".join(record.devices_in_error), time.time(), body))
+            try:
+                self._insert(record, body)
+            except sqlite3.Error as exc:  # SQLITE_FULL, read-only, I/O: the row is not there; say which
+                raise RecordingError(f"{self.path}: window {record.index} not stored: {exc}") from None
             self.last_index = record.index
+
+    def _insert(self, record: WindowRecord, body: str) -> None:
+        self._db.execute(
+            "INSERT INTO windows (idx, start_s, end_s, status, coverage, samples_expected, samples_taken, "
+            "missed_ticks, largest_gap_s, devices_in_error, written_s, body) "
+            "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            (record.index, record.start_s, record.end_s, record.status, record.coverage,
+             record.samples_expected, record.samples_taken, record.missed_ticks, record.largest_gap_s,
+             ",".join(record.devices_in_error), time.time(), body))
 
     def __call__(self, record: WindowRecord) -> None:
         """A store is a sink: ``Acquisition(..., sinks=[store])``."""

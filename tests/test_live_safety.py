@@ -14,10 +14,12 @@ import pytest
 from test_live import MAX_STEP_UM, Rig, audited
 
 from gateway.cli import main
+from gateway.live.estimator import Estimator
 from gateway.live.plausibility import ABS_FACTOR, ABS_MARGIN_UM, Plausibility
 from gateway.live.settings import Compensation, default_axes
 from gateway.model import FirstOrder, save_model
 from gateway.model.envelope import Envelope
+from gateway.records import STORE_NAME, RecordStore
 
 
 def gain_1e300(model):
@@ -120,3 +122,46 @@ def test_bounds_come_from_the_envelope_a_profile_tightens_them_and_without_one_f
         axes=default_axes(model.axes), limit_um=80.0), window_s=60.0)
     assert derived.bounds["z"].abs_um == 80.0
     assert derived.bounds["z"].change_um == 8.0
+
+
+def test_a_window_the_store_cannot_commit_is_not_acted_on_and_the_offsets_hold(tmp_path):
+    """Store-first by construction: SQLite's own "database or disk is full" (the file capped at its size)."""
+    rig = Rig(tmp_path, name="full")
+    try:
+        data = tmp_path / "data"
+        with rig.gateway(data) as gw:
+            gw.run_stepped(70 * 60)  # heating since 60 min: every window moves the offsets
+            held = rig.devices.cnc.update().applied_um
+            writes, stored, live = gw.writer.writes, len(gw.store), gw.windows_live
+            with gw.store._lock:  # the disk is full from here on
+                pages = gw.store._db.execute("PRAGMA page_count").fetchone()[0]
+                gw.store._db.execute(f"PRAGMA max_page_count = {pages}")
+            gw.run_stepped(76 * 60)
+            assert "store" in gw.alarms
+            message = next(a.message for a in gw.alarms.active() if a.name == "store")
+            assert "records.sqlite: window" in message
+            assert "database or disk is full" in message
+            assert gw.store_failures >= 5
+            assert gw.windows_live == live  # the estimator never saw an uncommitted window
+            assert gw.writer.writes == writes  # nor did the writer
+            assert rig.devices.cnc.update().applied_um == pytest.approx(held)
+            assert rig.devices.cnc.update().trips == 0  # held, the heartbeat went on
+            with gw.store._lock:
+                gw.store._db.execute("PRAGMA max_page_count = 1073741823")  # space again
+            gw.run_stepped(85 * 60)
+            assert "store" not in gw.alarms
+            assert gw.writer.writes > writes  # compensating again
+            missing = gw.store_failures
+            assert len(gw.store) == stored + gw.windows_live - live
+            assert gw.estimator.history.filled_total >= missing  # the windows not stored, filled by the gap policy
+            live_estimate = dict(gw.estimator.last.estimate_um)
+            with RecordStore(data / STORE_NAME) as store:  # a restart sees the same history: the same estimate
+                again = Estimator(gw.model, window_s=gw.profile.sampling.window_s, live=gw.profile.live)
+                again.rebuild(store.windows())
+        assert dict(again.last.estimate_um) == pytest.approx(live_estimate, abs=1e-9)
+        writes, events = audited(data)
+        assert [k for _, k, n, _ in events if n == "store"] == ["alarm"] * missing + ["clear"]  # each window
+        for a, b in itertools.pairwise(writes):
+            assert max(abs(b.applied_um[x] - a.applied_um[x]) for x in "xyz") <= MAX_STEP_UM + 1e-9
+    finally:
+        rig.close()

@@ -54,7 +54,7 @@ class Gap:
     first: int
     last: int
     policy: str
-    reason: str  # "gateway down" or why the windows were bad
+    reason: str  # no record stored (gateway down, store failed) or why the windows were bad
 
     @property
     def windows(self) -> int:
@@ -157,7 +157,7 @@ class FactorHistory:
             for j in range(first, last + 1):
                 cols.append(self._with_inputs(self._fill_column(j), (j + 1) * self.window_s, None))
             filled += last - first + 1
-            self._note_gap(first, last, "gateway down: no record")
+            self._note_gap(first, last, "no record stored: the gateway was down or the store failed")
         reason = bad_reason(record, self.model.factors, self.channels)
         if reason:
             cols.append(self._with_inputs(self._fill_column(record.index), record.end_s, record))

@@ -5,8 +5,12 @@ Data path per finished window, on the window closer's thread (heavy work stays o
     samplers -> WindowCloser -> RecordStore.append (durable first) -> Estimator.update -> writer.submit
                                                                                        -> health, OPC UA, log
 
-The record is committed before the estimate that follows from it is acted on, so whatever the CNC was
-given can be recomputed from the store after a crash.
+Store-first by construction: the window closer has one sink, :meth:`LiveGateway._on_window`, which hands a
+record to the estimator and the writer only once ``RecordStore.append`` has committed it. A window the
+store could not commit (disk full, file read-only, I/O error) raises the alarm ``store`` and is not acted
+on: the offsets stay where they are, and the estimator later fills it by the gap policy exactly as a
+restart would, since the store does not have it either. Whatever the CNC was given can be recomputed from
+the store after a crash.
 
 Start order (Telegraf's agent): consumers before producers: the store and the audit log, the estimator
 (rebuilt from the stored history), the compensation writer (its thread connects to the CNC and starts the
@@ -88,6 +92,7 @@ class LiveGateway:
         self.started_s: float | None = None
         self.windows_live = 0
         self.update_s: list[float] = []  # estimator step time per window (wall s)
+        self.store_failures = 0  # windows the store could not commit (not acted on)
         self.last_record: WindowRecord | None = None
         self._state = "new"
         self._lock = threading.Lock()
@@ -166,7 +171,7 @@ class LiveGateway:
                                            window_s=p.sampling.window_s, store=self.store, profile=p,
                                            factor_units={f.name: f.unit for f in p.factors}).start())
 
-        self.acquisition = Acquisition(p, clock=self.clock, sinks=[self.store, self._on_record], spin_s=self._spin_s,
+        self.acquisition = Acquisition(p, clock=self.clock, sinks=[self._on_window], spin_s=self._spin_s,
                                        rt_priority=self._rt_priority, driver_factories=self._driver_factories)
         if not self.stepped:
             self.acquisition.start()
@@ -213,6 +218,20 @@ class LiveGateway:
             self.writer.service()
 
     # -- per window ---------------------------------------------------------------------------------------
+    def _on_window(self, record: WindowRecord) -> None:
+        """The closer's one sink: commit the record, then (only then) estimate, write, publish."""
+        assert self.store is not None
+        assert self.alarms is not None
+        try:
+            self.store.append(record)
+        except Exception as exc:  # disk full, read-only, I/O: nothing downstream may act on this window
+            self.store_failures += 1
+            self.alarms.raise_("store", f"window {record.index} could not be stored ({exc}): not acted on, the "
+                                        "offsets are held until the store works again", self.clock.now())
+            return
+        self.alarms.clear("store", self.clock.now(), f"window {record.index} stored")
+        self._on_record(record)
+
     def _on_record(self, record: WindowRecord) -> None:
         assert self.estimator is not None
         assert self.writer is not None
