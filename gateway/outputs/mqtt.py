@@ -198,7 +198,7 @@ class MqttOutput:
         client = paho.Client(callback_api_version=paho.CallbackAPIVersion.VERSION2,
                              client_id=s.client_id or f"cncgw-{self.machine}", clean_session=True,
                              protocol=paho.MQTTv311)
-        client.enable_logger(logging.getLogger("gateway.outputs.mqtt.paho"))
+        # paho's own logger is left off: it logs every failed reconnect; _on_disconnect says it once
         client.max_inflight_messages_set(4 * s.max_inflight_windows + 4)
         client.reconnect_delay_set(min_delay=s.reconnect_min_s, max_delay=s.reconnect_max_s)  # type: ignore[arg-type]
         client.will_set(s.topic(self.machine, "status"), encode({"state": "offline", "clean": False,
