@@ -14,7 +14,10 @@ Address space (namespace ``urn:cncgw``, string node ids, so a client can read ``
   ``Compensation.Verified``, ``Compensation.Writes``, ``Compensation.HoldRequest``;
 - ``Health.Alarms`` (one string per active alarm), ``Health.AlarmCount``, ``Health.Devices`` (``name:
   state``), ``Health.SampleRateHz`` (lowest device), ``Health.MissedTicks`` (last window),
-  ``Health.GapWindows`` (windows filled by the gap policy), ``Health.UptimeS``.
+  ``Health.GapWindows`` (windows filled by the gap policy), ``Health.UptimeS``;
+- the last window's quality: ``Health.WindowIndex``, ``Health.WindowStatus`` (``good``, ``insufficient``,
+  ``rejected``), ``Health.WindowQuality`` (one line: coverage, samples, devices in error and their error,
+  why it is not good), ``Health.CoveragePct``, ``Health.SamplesTaken``, ``Health.SamplesExpected``.
 
 The server runs its own asyncio loop in a thread; :meth:`OpcUaServer.publish` (any thread) hands it a
 health snapshot, applied by a publisher task. Both tasks run in one ``TaskGroup``; every wait has a timeout.
@@ -195,6 +198,13 @@ class OpcUaServer:
         await var(health, "Health.MissedTicks", 0, I64)
         await var(health, "Health.GapWindows", 0, I64)
         await var(health, "Health.UptimeS", 0.0, D)
+        await var(health, "Health.WindowIndex", -1, I64)
+        await var(health, "Health.WindowStatus", "", S, "good, insufficient (too little data) or rejected "
+                                                       "(saturated or not finite)")
+        await var(health, "Health.WindowQuality", "", S, "coverage, samples, devices in error, why not good")
+        await var(health, "Health.CoveragePct", math.nan, D, "lowest channel coverage of the last window [%]")
+        await var(health, "Health.SamplesTaken", 0, I64)
+        await var(health, "Health.SamplesExpected", 0, I64)
 
     async def _publisher(self) -> None:
         assert self._queue is not None
@@ -254,6 +264,12 @@ class OpcUaServer:
         lw_ = h.get("last_window")
         if lw_:
             values["Health.MissedTicks"] = int(lw_["missed_ticks"])
+            values["Health.WindowIndex"] = int(lw_.get("index", -1))
+            values["Health.WindowStatus"] = str(lw_.get("status", ""))
+            values["Health.WindowQuality"] = str(lw_.get("quality", ""))
+            values["Health.CoveragePct"] = 100.0 * float(lw_.get("coverage", math.nan))
+            values["Health.SamplesTaken"] = int(lw_.get("samples_taken", 0))
+            values["Health.SamplesExpected"] = int(lw_.get("samples_expected", 0))
         values["Health.GapWindows"] = int(h.get("gaps", {}).get("filled_windows", 0))
         values["Health.UptimeS"] = float(h.get("uptime_s", 0.0))
         from asyncua import ua

@@ -23,7 +23,16 @@ from typing import Any
 
 from drivers.base import FASTEST_PERIOD_S
 from gateway.errors import ProfileError
-from gateway.live.settings import Compensation, Live, OpcUa, parse_compensation, parse_live, parse_opcua
+from gateway.live.settings import (
+    Compensation,
+    Live,
+    OpcUa,
+    Records,
+    parse_compensation,
+    parse_live,
+    parse_opcua,
+    parse_records,
+)
 from gateway.outputs.mqtt import Mqtt, parse_mqtt
 from gateway.recording import MAX_PERIOD_S, MIN_PERIOD_S
 from gateway.tomlcheck import NAME, Table, TomlDoc
@@ -128,6 +137,7 @@ class Profile:
     live: Live = field(default_factory=Live)
     opcua: OpcUa = field(default_factory=OpcUa)
     mqtt: Mqtt = field(default_factory=Mqtt)
+    records: Records = field(default_factory=Records)
 
     @property
     def factor_names(self) -> tuple[str, ...]:
@@ -199,6 +209,7 @@ def load_profile(path: str | Path) -> Profile:
     compensation = parse_compensation(root, axes, sampling.window_s)
     opcua = parse_opcua(root, doc.path.parent)
     mqtt = parse_mqtt(root, doc.path.parent)
+    records = parse_records(root)
 
     root.done()
     doc.raise_problems()
@@ -206,7 +217,7 @@ def load_profile(path: str | Path) -> Profile:
         path=doc.path, name=name, description=description, axes=axes, sampling=sampling,
         factors=tuple(factors), recording=recording, model_path=model_path,
         devices=tuple(devices), channels=tuple(channels), compensation=compensation, live=live, opcua=opcua,
-        mqtt=mqtt,
+        mqtt=mqtt, records=records,
     )
 
 

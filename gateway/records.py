@@ -20,7 +20,9 @@ were recorded, every other channel's window mean under the channel's name (e.g. 
 from __future__ import annotations
 
 import json
+import logging
 import math
+import os
 import sqlite3
 import threading
 import time
@@ -38,6 +40,10 @@ from gateway.windows import ChannelStats, DeviceQuality, WindowRecord
 
 FORMAT = 1
 STORE_NAME = "records.sqlite"
+#: rows deleted per transaction when pruning: the store's lock is held for one batch at a time
+PRUNE_BATCH = 500
+
+log = logging.getLogger(__name__)
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -56,6 +62,40 @@ CREATE TABLE IF NOT EXISTS windows (
     body TEXT NOT NULL
 );
 """
+
+
+def private_dir(path: str | Path) -> Path:
+    """Create the data directory ``path`` for this user only (0700), or narrow an existing one to that.
+
+    Records and the audit log describe a machine's work: nobody else on the PC needs to read them. A
+    directory this user does not own is left as it is, with a warning.
+    """
+    path = Path(path)
+    path.mkdir(mode=0o700, parents=True, exist_ok=True)
+    _narrow(path, 0o700)
+    return path
+
+
+def private_file(path: str | Path) -> Path:
+    """Make ``path`` readable by this user only (0600): created so if new, narrowed if it exists.
+
+    An SQLite file's ``-wal`` and ``-shm`` files are created with its mode.
+    """
+    path = Path(path)
+    if not path.exists():
+        os.close(os.open(path, os.O_CREAT | os.O_WRONLY, 0o600))
+    for p in (path, path.with_name(path.name + "-wal"), path.with_name(path.name + "-shm")):
+        if p.exists():
+            _narrow(p, 0o600)
+    return path
+
+
+def _narrow(path: Path, mode: int) -> None:
+    if path.stat().st_mode & 0o777 & ~mode:
+        try:
+            os.chmod(path, mode)
+        except OSError as exc:  # not ours: say so, do not stop
+            log.warning("%s: cannot restrict its permissions to %o: %s", path, mode, exc)
 
 
 def _clean(x: Any) -> Any:
@@ -82,6 +122,7 @@ def record_to_json(record: WindowRecord) -> str:
         "displacement": dict(record.displacement),
         "burst_revolutions": dict(record.burst_revolutions),
         "notes": list(record.notes),
+        "reason": record.reason,
     }
     return json.dumps(_clean(body), separators=(",", ":"), allow_nan=False)
 
@@ -105,7 +146,7 @@ def record_from_row(idx: int, start_s: float, end_s: float, status: str, body: s
         channels=MappingProxyType(channels), devices=MappingProxyType(devices),
         displacement=MappingProxyType({k: _num(v) for k, v in b["displacement"].items()}),
         burst_revolutions=MappingProxyType({k: _num(v) for k, v in b["burst_revolutions"].items()}),
-        notes=tuple(b["notes"]))
+        notes=tuple(b["notes"]), reason=b.get("reason", ""))  # stores written before reasons: ""
 
 
 class RecordStore:
@@ -121,6 +162,8 @@ class RecordStore:
         if profile is None and not self.path.exists():
             raise RecordingError(f"{self.path}: no record store here")
         self._lock = threading.Lock()
+        if profile is not None:  # a store written to: this user's only
+            private_file(self.path)
         try:
             self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
             self._db.execute("PRAGMA journal_mode=WAL")
@@ -175,6 +218,29 @@ class RecordStore:
             (record.index, record.start_s, record.end_s, record.status, record.coverage,
              record.samples_expected, record.samples_taken, record.missed_ticks, record.largest_gap_s,
              ",".join(record.devices_in_error), time.time(), body))
+
+    def prune(self, *, before: int, batch: int = PRUNE_BATCH) -> int:
+        """Delete the windows with an index below ``before``; return how many.
+
+        In transactions of ``batch`` rows, the lock released between them, so a window closing meanwhile is
+        appended after at most one batch (the samplers never wait on the store at all). SQLite reuses the
+        freed pages: the file stops growing rather than shrinking.
+        """
+        deleted = 0
+        while True:
+            with self._lock:
+                cur = self._db.execute("DELETE FROM windows WHERE idx IN (SELECT idx FROM windows WHERE idx < ? "
+                                       "ORDER BY idx LIMIT ?)", (before, batch))
+                n = cur.rowcount
+            deleted += max(0, n)
+            if n < batch:
+                return deleted
+            time.sleep(0.002)  # a waiting append takes the lock now (threading.Lock is not fair)
+
+    def first_index(self) -> int | None:
+        """The oldest stored window's index (``None``: empty)."""
+        with self._lock:
+            return self._db.execute("SELECT MIN(idx) FROM windows").fetchone()[0]
 
     def __call__(self, record: WindowRecord) -> None:
         """A store is a sink: ``Acquisition(..., sinks=[store])``."""

@@ -185,13 +185,26 @@ class DeviceQuality:
         """Not handed in, a read failed, off-scan, or any error noted (a silent unit on a shared line)."""
         return not self.reported or bool(self.reads_failed or self.off_scan_ticks or self.errors)
 
+    def describe_error(self) -> str:
+        """What went wrong with the device in this window (its first error, and the counts)."""
+        if not self.reported:
+            return "did not report this window"
+        counts = [f"{n} {what}" for n, what in ((self.reads_failed, "reads failed"), (self.timeouts, "timeouts"),
+                                                 (self.off_scan_ticks, "ticks off-scan")) if n]
+        first = self.errors[0] if self.errors else ""
+        return "; ".join([x for x in (first, ", ".join(counts)) if x]) or "in error"
+
 
 @dataclass(frozen=True, kw_only=True)
 class WindowRecord:
     """One window, as stored: factors, channel statistics, displacement bursts, quality.
 
-    ``status``: ``"good"`` when every factor channel covers at least ``min_coverage`` of the window,
-    else ``"insufficient"`` (exports leave its factors empty rather than pass them off as good).
+    ``status``: ``"good"`` when every factor channel covers at least ``min_coverage`` of the window and
+    every factor is a finite value read within the converters' range; ``"insufficient"`` when a factor
+    channel covers less; ``"rejected"`` when a factor channel had saturated samples (the converter sat at
+    its limit: the true value, and so the factor, is beyond what was read) or a factor is not finite.
+    Exports leave the factors of a window that is not good empty rather than pass them off as good, and the
+    live estimator fills it by its gap policy. ``reason`` says why a window is not good (``""`` when it is).
     """
 
     index: int
@@ -204,6 +217,21 @@ class WindowRecord:
     displacement: Mapping[str, float] = field(default_factory=dict)
     burst_revolutions: Mapping[str, float] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
+    reason: str = ""
+
+    def quality(self) -> str:
+        """The window's quality in one line.
+
+        Coverage, samples, the devices in error with their first error, and why the window is not good, e.g.
+        ``coverage 52 % (8685/30000 samples), device adc: no valid answer ...``.
+        """
+        parts = [f"coverage {100 * self.coverage:.0f} % ({self.samples_taken}/{self.samples_expected} samples)"]
+        for name, d in self.devices.items():
+            if d.in_error:
+                parts.append(f"device {name}: {d.describe_error()}")
+        if self.reason:
+            parts.append(self.reason)
+        return ", ".join(parts)
 
     def channel_mean(self, channel: str) -> float:
         """The window mean of ``channel``; NaN when it has no good sample in this window."""
@@ -316,15 +344,34 @@ def build_record(profile: Profile, index: int, partials: Mapping[str, DevicePart
     if nominal_tick_s is not None:
         _coarse_mean_square_notes(profile, channels, devices, nominal_tick_s, notes)
     status = "good"
+    reasons: list[str] = []
     floor = profile.sampling.min_coverage
+    short: dict[str, float] = {}  # factor channel -> coverage, below the floor
     for f in profile.factors:
         c = channels.get(f.channel, missing)
         if c.coverage < floor:
             status = "insufficient"
+            short[f.channel] = c.coverage
             notes.append(f"factor {f.name}: channel {f.channel} covers {c.coverage:.1%} of the window "
                          f"(minimum {floor:.0%})")
         if c.saturated:
             notes.append(f"channel {f.channel}: {c.saturated} saturated samples (the converter sat at its limit)")
+    if len(short) == 1:
+        (ch, cov), = short.items()
+        reasons.append(f"channel {ch} covers {cov:.1%} of the window (minimum {floor:.0%})")
+    elif short:
+        lowest = min(short, key=short.__getitem__)
+        reasons.append(f"{len(short)} factor channels cover less than the {floor:.0%} minimum (lowest: {lowest} "
+                       f"{short[lowest]:.1%})")
+    if status == "good":  # enough data, but not values to pass off as good
+        for f in profile.factors:
+            c = channels.get(f.channel, missing)
+            if c.saturated:
+                status = "rejected"
+                reasons.append(f"channel {f.channel} (factor {f.name}) saturated in {c.saturated} samples")
+            elif not math.isfinite(factors[f.name]):
+                status = "rejected"
+                reasons.append(f"factor {f.name} is {factors[f.name]!r}, not a finite value")
     displacement: dict[str, float] = {}
     revolutions: dict[str, float] = {}
     speed_ch = profile.sampling.burst_speed_channel
@@ -336,7 +383,7 @@ def build_record(profile: Profile, index: int, partials: Mapping[str, DevicePart
     return WindowRecord(index=index, start_s=start, end_s=end, status=status, factors=MappingProxyType(factors),
                         channels=MappingProxyType(channels), devices=MappingProxyType(devices),
                         displacement=MappingProxyType(displacement), burst_revolutions=MappingProxyType(revolutions),
-                        notes=tuple(dict.fromkeys(notes)))
+                        notes=tuple(dict.fromkeys(notes)), reason="; ".join(dict.fromkeys(reasons)))
 
 
 #: relative standard error of a mean of squares from one sample of a full-wave rectified ripple |A sin wt|:

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import logging
 import math
+import re
 import time
 
 import pytest
@@ -97,8 +99,10 @@ def test_closed_loop_cuts_the_error_by_70_percent_and_the_cnc_applies_what_is_wr
         while gw.opcua.published < gw.windows_live and deadline:  # the publisher catches up with the windows
             deadline -= 1
             asyncio.run(asyncio.sleep(0.02))
-        values, refused = asyncio.run(read_opcua(gw.opcua.endpoint, ["Estimate.z_um", "Compensation.Commanded.z_um",
-                                                                      "Compensation.Mode", "Health.AlarmCount"]))
+        values, refused = asyncio.run(read_opcua(gw.opcua.endpoint, [
+            "Estimate.z_um", "Compensation.Commanded.z_um", "Compensation.Mode", "Health.AlarmCount",
+            "Health.WindowStatus", "Health.WindowQuality", "Health.CoveragePct", "Health.SamplesTaken",
+            "Health.SamplesExpected", "Health.WindowIndex"]))
     errs = closed_loop_errors(rig.machine, end_s)
     for axis in ("x", "y", "z"):
         assert errs.reduction(axis) >= 0.70, (axis, errs.max_without_um[axis], errs.max_with_um[axis])
@@ -120,6 +124,13 @@ def test_closed_loop_cuts_the_error_by_70_percent_and_the_cnc_applies_what_is_wr
     assert values["Compensation.Commanded.z_um"] == pytest.approx(health["compensation"]["commanded_um"]["z"])
     assert values["Compensation.Mode"] == "write"
     assert values["Health.AlarmCount"] == 0
+    assert values["Health.WindowIndex"] == 179
+    assert values["Health.WindowStatus"] == "good"
+    assert values["Health.CoveragePct"] > 90.0
+    assert values["Health.SamplesTaken"] <= values["Health.SamplesExpected"]
+    assert values["Health.WindowQuality"] == (f"coverage {values['Health.CoveragePct']:.0f} % "
+                                              f"({values['Health.SamplesTaken']}/{values['Health.SamplesExpected']} "
+                                              "samples)")
     assert [k for k, _ in refused] == ["Compensation.HoldRequest", "Estimate.z_um"]  # read-only by default
     assert all(e in ("BadUserAccessDenied", "BadNotWritable") for _, e in refused)
 
@@ -163,7 +174,8 @@ def test_restart_rebuilds_the_estimate_and_changes_the_compensation_by_less_than
         assert max(abs(b.applied_um[x] - a.applied_um[x]) for x in "xyz") <= MAX_STEP_UM + 1e-9
 
 
-def test_devices_dropping_and_saturated_values_hold_the_offsets_without_a_jump(tmp_path):
+def test_devices_dropping_and_saturated_values_hold_the_offsets_without_a_jump(tmp_path, caplog):
+    caplog.set_level(logging.INFO, logger="gateway.live")
     rig = Rig(tmp_path)
     try:
         adc = rig.devices.adc_tcp
@@ -189,6 +201,23 @@ def test_devices_dropping_and_saturated_values_hold_the_offsets_without_a_jump(t
             health = gw.health()
         assert health["alarms"] == []
         assert health["gaps"]["filled_windows"] >= 7
+        with RecordStore(data / STORE_NAME) as store:  # the store says why each window was not used
+            bad = {r.index: r for r in store.windows() if r.status != "good"}
+        dropped = [r for r in bad.values() if r.status == "insufficient"]
+        saturated = [r for r in bad.values() if r.status == "rejected"]
+        assert len(dropped) >= 3
+        assert len(saturated) >= 2  # enough samples, but the converter sat at its limit: never "good"
+        assert all("device adc: " in r.quality() and "samples)" in r.quality() for r in dropped)
+        assert all("channel spindle_i1 (factor spindle_i1_sq) saturated in" in r.reason for r in saturated)
+        # the run log explains each window that is not good: coverage, samples, the device and its error
+        lines = [m for m in caplog.messages if re.match(r"window \d+ insufficient: ", m)]
+        assert len(lines) >= 3
+        assert all(re.match(r"window \d+ insufficient: coverage \d+ % \(\d+/\d+ samples\), device adc: ", m)
+                   for m in lines), lines
+        assert re.match(r'window \d+ insufficient: coverage 0 % \(0/\d+ samples\), device adc: device "adc" '
+                        r"\(Modbus TCP\): no valid answer to fc4 0..8 within 0.5 s", lines[0]), lines[0]
+        assert any(re.match(r"window \d+ rejected: coverage 100 % .*channel spindle_i1 \(factor spindle_i1_sq\) "
+                            r"saturated in \d+ samples", m) for m in caplog.messages)
         writes, events = audited(data)
         for a, b in itertools.pairwise(writes):
             assert max(abs(b.applied_um[x] - a.applied_um[x]) for x in "xyz") <= MAX_STEP_UM + 1e-9

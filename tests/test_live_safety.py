@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import threading
 
 import pytest
 from test_live import MAX_STEP_UM, Rig, audited
@@ -19,6 +20,7 @@ from gateway.live.plausibility import ABS_FACTOR, ABS_MARGIN_UM, Plausibility
 from gateway.live.settings import Compensation, default_axes
 from gateway.model import FirstOrder, save_model
 from gateway.model.envelope import Envelope
+from gateway.profile import load_profile
 from gateway.records import STORE_NAME, RecordStore
 
 
@@ -165,3 +167,78 @@ def test_a_window_the_store_cannot_commit_is_not_acted_on_and_the_offsets_hold(t
             assert max(abs(b.applied_um[x] - a.applied_um[x]) for x in "xyz") <= MAX_STEP_UM + 1e-9
     finally:
         rig.close()
+
+
+def test_windows_older_than_keep_days_are_pruned_and_files_are_private(tmp_path):
+    rig = Rig(tmp_path, name="keep", live="history_max_h = 1.0")
+    try:
+        rig.profile.path.write_text(rig.profile.path.read_text() + "\n[records]\nkeep_days = 0.05\n")  # 72 windows
+        rig.profile = load_profile(rig.profile.path)
+        data = tmp_path / "data"
+        data.mkdir(mode=0o755)
+        with rig.gateway(data) as gw:
+            gw.run_stepped(150 * 60)
+            first, last = gw.store.first_index(), gw.store.last_index
+            assert last == 149
+            assert first == last + 1 - 72  # 0.05 days of one-minute windows kept, the rest deleted
+            assert len(gw.store) == 72
+            assert gw.pruned_windows > 70
+            modes = {p.name: p.stat().st_mode & 0o777 for p in data.iterdir()}
+        assert data.stat().st_mode & 0o777 == 0o700  # narrowed from 0755
+        assert modes["records.sqlite"] == modes["audit.sqlite"] == 0o600
+        assert modes["records.sqlite-wal"] == modes["audit.sqlite-wal"] == 0o600
+        _, events = audited(data)
+        assert any(k == "prune" and "older than 0.05 days deleted" in m for _, k, _, m in events)
+        rig.clock.advance(2.0)
+        with rig.gateway(data) as gw:  # a restart replays what was kept: 1 h of history
+            assert gw.estimator.rebuilt_windows == 60
+            gw.run_stepped(155 * 60)
+            assert "inputs" not in gw.alarms
+    finally:
+        rig.close()
+
+
+def test_keep_days_shorter_than_the_history_a_restart_needs_is_refused(tmp_path, capsys):
+    rig = Rig(tmp_path, name="short")
+    try:
+        rig.profile.path.write_text(rig.profile.path.read_text() + "\n[records]\nkeep_days = 2\n")
+        code = main(["run", "--profile", str(rig.profile.path), "--data", str(tmp_path / "never")])
+        err = capsys.readouterr().err
+        assert code == 3
+        assert "records.keep_days = 2 keeps less than the" in err
+        assert "days of history the estimator replays on start" in err
+        assert not (tmp_path / "never").exists()
+    finally:
+        rig.close()
+
+
+def test_pruning_in_batches_lets_windows_be_appended_meanwhile(tmp_path):
+    rig = Rig(tmp_path, name="batch")
+    rig.close()
+    with RecordStore(tmp_path / "s.sqlite", profile=rig.profile) as store:
+        bodies = []
+        for k in range(3000):  # one transaction: the test needs many rows, not a durable each
+            bodies.append((k, 60.0 * k, 60.0 * (k + 1), "good", 1.0, 1, 1, 0, 0.0, "", 0.0, "{\"factors\":{},"
+                           "\"channels\":{},\"devices\":{},\"displacement\":{},\"burst_revolutions\":{},\"notes\":[]}"))
+        with store._lock:
+            store._db.execute("BEGIN")
+            store._db.executemany("INSERT INTO windows VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", bodies)
+            store._db.execute("COMMIT")
+            store.last_index = 2999
+        template = store.first()
+        appended = []
+
+        def append_more():
+            for k in range(3000, 3040):
+                store.append(dataclasses.replace(template, index=k, start_s=60.0 * k, end_s=60.0 * (k + 1)))
+                appended.append(k)
+
+        t = threading.Thread(target=append_more)
+        t.start()
+        deleted = store.prune(before=2900, batch=100)
+        t.join()
+        assert deleted == 2900
+        assert appended == list(range(3000, 3040))
+        assert store.first_index() == 2900
+        assert len(store) == 140
+        assert [r.index for r in store.windows()][:3] == [2900, 2901, 2902]

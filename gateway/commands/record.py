@@ -124,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _line(r: WindowRecord) -> str:
-    errs = f", devices in error: {', '.join(r.devices_in_error)}" if r.devices_in_error else ""
+    errs = "".join(f", device {n}: {d.describe_error()}" for n, d in r.devices.items() if d.in_error)
     return (f"window {r.index} (t={r.end_s:.0f} s) {r.status}: coverage {r.coverage:.1%}, samples "
             f"{r.samples_taken}/{r.samples_expected}, missed {r.missed_ticks}, largest gap {r.largest_gap_s:.3f} s"
-            f"{errs}")
+            f"{errs}{', ' + r.reason if r.reason else ''}")

@@ -19,7 +19,7 @@ from typing import Any
 
 from gateway.clock import Clock, RealClock, ScaledClock
 from gateway.commands._common import load_model_for, positive_float
-from gateway.errors import GatewayError, ModelError
+from gateway.errors import GatewayError, ModelError, ProfileError
 from gateway.profile import load_profile
 
 log = logging.getLogger("gateway.live")
@@ -92,13 +92,16 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.rt_priority <= 99:
         raise GatewayError(f"--rt-priority must be in 0..99. Got {args.rt_priority}")
     model, model_path = load_model_for(profile, args.model)
-    from gateway.live.estimator import column_channel_problems
+    from gateway.live.estimator import column_channel_problems, retention_problems
     from gateway.live.plausibility import model_refusals
 
     problems = column_channel_problems(model, [c.name for c in profile.channels])
     problems += model_refusals(model, profile.name, profile.compensation)
     if problems:
         raise ModelError("\n".join(f"{model_path}: {p}" for p in problems))
+    problems = retention_problems(model, profile)
+    if problems:
+        raise ProfileError("\n".join(problems))
     _configure_logging(args.log_format, getattr(args, "verbose", 0))
     from threadpoolctl import threadpool_limits
 

@@ -1,6 +1,6 @@
 """The audit log and the alarms: every value written (or, in a dry run, that would have been), every event.
 
-``DIR/audit.sqlite`` (SQLite WAL, ``synchronous=FULL``, append-only) beside the record store:
+``DIR/audit.sqlite`` (SQLite WAL, ``synchronous=FULL``, append-only, mode 0600) beside the record store:
 
 - ``writes``: one row per compensation write: clock and wall time, the window it follows, the mode
   (``write`` or ``dry-run``), per axis the estimate, the target (sign applied), the offset commanded after
@@ -79,6 +79,10 @@ class AuditLog:
 
     def __init__(self, path: str | Path | None) -> None:
         self.path = Path(path) if path is not None else None
+        if self.path is not None:
+            from gateway.records import private_file
+
+            private_file(self.path)  # 0600: what was written to a machine is nobody else's business
         self._lock = threading.Lock()
         self._db: sqlite3.Connection | None = sqlite3.connect(
             ":memory:" if path is None else str(path), check_same_thread=False, isolation_level=None)

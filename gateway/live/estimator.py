@@ -35,6 +35,7 @@ import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
+from typing import Any
 
 import numpy as np
 
@@ -92,8 +93,7 @@ def bad_reason(record: WindowRecord, factors: Iterable[str], channels: Mapping[s
     converter sat at its limit: the true value, and so the factor, is beyond what was read).
     """
     if record.status != "good":
-        errs = f"; devices in error: {', '.join(record.devices_in_error)}" if record.devices_in_error else ""
-        return f"window {record.index} {record.status}{errs}"
+        return f"window {record.index} {record.status}: {record.quality()}"
     missing = [f for f in factors if not math.isfinite(record.factors.get(f, math.nan))]
     if missing:
         return f"window {record.index}: no finite value for {', '.join(missing)}"
@@ -218,6 +218,19 @@ def history_windows(model: ThermalModel, window_s: float, live: Live) -> int:
                   default=window_s)
     delay = max((p.delay_s for p in model.paths.values()), default=0.0)
     return max(1, math.ceil((20.0 * slowest + delay) / window_s))
+
+
+def retention_problems(model: ThermalModel, profile: Any) -> list[str]:
+    """``[records] keep_days`` must keep the history a restart replays (:func:`history_windows`)."""
+    keep = profile.records.keep_days
+    if keep is None:
+        return []
+    need_days = history_windows(model, profile.sampling.window_s, profile.live) * profile.sampling.window_s / 86400.0
+    if keep >= need_days:
+        return []
+    return [f"{profile.path}: records.keep_days = {keep:g} keeps less than the {need_days:.3g} days of history the "
+            f"estimator replays on start (20 x the model's slowest time constant, or [live] history_max_h): "
+            f"expected >= {need_days:.3g}, or a shorter [live] history_max_h"]
 
 
 class Estimator:

@@ -31,14 +31,14 @@ from typing import Any
 from drivers.base import Driver
 from gateway.clock import Clock, ManualClock
 from gateway.compensation import CompensationWriter
-from gateway.errors import ModelError
+from gateway.errors import ModelError, ProfileError
 from gateway.live.audit import AUDIT_NAME, Alarms, AuditLog
 from gateway.live.cnc import CncLink
-from gateway.live.estimator import EstimateUpdate, Estimator, history_windows
+from gateway.live.estimator import EstimateUpdate, Estimator, history_windows, retention_problems
 from gateway.live.plausibility import Plausibility, model_refusals
 from gateway.model import ThermalModel
 from gateway.profile import Profile
-from gateway.records import STORE_NAME, RecordStore
+from gateway.records import STORE_NAME, RecordStore, private_dir
 from gateway.windows import WindowRecord
 
 log = logging.getLogger("gateway.live")
@@ -96,6 +96,9 @@ class LiveGateway:
         self.last_record: WindowRecord | None = None
         self._state = "new"
         self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._retention: threading.Thread | None = None
+        self.pruned_windows = 0
 
     # -- lifecycle ----------------------------------------------------------------------------------------
     def start(self) -> LiveGateway:
@@ -118,8 +121,10 @@ class LiveGateway:
         refusals = model_refusals(self.model, p.name, p.compensation)
         if refusals:  # before anything is created or connected
             raise ModelError("\n".join(refusals))
+        if retention_problems(self.model, p):
+            raise ProfileError("\n".join(retention_problems(self.model, p)))
         self.plausibility = Plausibility.for_model(self.model, p.compensation, window_s=p.sampling.window_s)
-        self.data_dir.mkdir(parents=True, exist_ok=True)
+        private_dir(self.data_dir)
         self.store = RecordStore(self.data_dir / STORE_NAME, profile=p)
         self.audit = AuditLog(self.data_dir / AUDIT_NAME)
         self.alarms = Alarms(audit=self.audit, on_change=self._publish_health)
@@ -175,6 +180,9 @@ class LiveGateway:
                                        rt_priority=self._rt_priority, driver_factories=self._driver_factories)
         if not self.stepped:
             self.acquisition.start()
+            if p.records.keep_days is not None:
+                self._retention = threading.Thread(target=self._retention_loop, name="cncgw-retention", daemon=True)
+                self._retention.start()
         self.writer.expect_inputs()
         log.info("gateway %s running: %d device(s), compensation %s%s", p.name, len(self.acquisition.samplers),
                  "WRITING to " + f"{p.compensation.host}:{p.compensation.port}" if p.compensation.enabled else
@@ -186,6 +194,10 @@ class LiveGateway:
             self._state = "stopped"
             return
         self._state = "stopped"
+        self._stopping.set()
+        if self._retention is not None:
+            self._retention.join()
+            self._retention = None
         if self.acquisition is not None:
             self.acquisition.stop()
         if self.writer is not None:
@@ -216,6 +228,38 @@ class LiveGateway:
             t = min(until_s, t + step)
             self.acquisition.run_stepped(t)
             self.writer.service()
+        self.prune_records()  # the retention thread's work, in step
+
+    # -- retention ----------------------------------------------------------------------------------------
+    def prune_records(self) -> int:
+        """Delete the stored windows older than ``[records] keep_days`` (in batches; see ``RecordStore.prune``)."""
+        keep = self.profile.records.keep_days
+        store = self.store
+        if keep is None or store is None or store.last_index is None:
+            return 0
+        window_s = self.profile.sampling.window_s
+        before = store.last_index + 1 - math.ceil(keep * 86400.0 / window_s)
+        first = store.first_index()
+        if first is None or first >= before:
+            return 0
+        n = store.prune(before=before)
+        self.pruned_windows += n
+        message = f"{n} windows older than {keep:g} days deleted (windows {first}..{before - 1})"
+        log.info("records: %s", message)
+        if self.audit is not None:
+            self.audit.event(self.clock.now(), "prune", "records", message)
+        return n
+
+    def _retention_loop(self) -> None:
+        """Prune at start, then every hour of clock time (at least every 10 wall seconds), off the data path."""
+        every_s = max(10.0, min(3600.0 / self.clock.speedup, 3600.0))
+        while True:
+            try:
+                self.prune_records()
+            except Exception:  # a full or locked disk: the next round tries again; recording goes on
+                log.exception("records: pruning failed")
+            if self._stopping.wait(every_s):
+                return
 
     # -- per window ---------------------------------------------------------------------------------------
     def _on_window(self, record: WindowRecord) -> None:
@@ -267,12 +311,16 @@ class LiveGateway:
         est = " ".join(f"{a}={v:+.2f}" for a, v in update.estimate_um.items())
         off = " ".join(f"{a}={v:+.2f}" for a, v in self.writer.commanded_um.items())
         alarms = [a.name for a in self.alarms.active()] if self.alarms else []
-        log.info("window %d %s: estimate %s um; offsets %s um%s", record.index, record.status, est, off,
-                 f"; alarms {','.join(alarms)}" if alarms else "",
+        log.info("window %d %s: %s; estimate %s um; offsets %s um%s", record.index, record.status, record.quality(),
+                 est, off, f"; alarms {','.join(alarms)}" if alarms else "",
                  extra={"event": "window", "window": record.index, "status": record.status,
                         "estimate_um": dict(update.estimate_um), "offsets_um": dict(self.writer.commanded_um),
                         "usable": update.usable, "missed_ticks": record.missed_ticks,
-                        "samples": record.samples_taken, "alarms": alarms})
+                        "samples": record.samples_taken, "samples_expected": record.samples_expected,
+                        "coverage": record.coverage, "quality": record.quality(), "reason": record.reason,
+                        "devices_in_error": {n: d.describe_error() for n, d in record.devices.items()
+                                             if d.in_error},
+                        "alarms": alarms})
 
     def _publish_health(self, record: WindowRecord | None = None, update: EstimateUpdate | None = None) -> None:
         if self.opcua is not None and self._state in ("running", "starting"):
@@ -300,7 +348,8 @@ class LiveGateway:
             "last_window": None if rec is None else {
                 "index": rec.index, "end_s": rec.end_s, "status": rec.status, "coverage": rec.coverage,
                 "samples_taken": rec.samples_taken, "samples_expected": rec.samples_expected,
-                "missed_ticks": rec.missed_ticks, "devices_in_error": list(rec.devices_in_error)},
+                "missed_ticks": rec.missed_ticks, "devices_in_error": list(rec.devices_in_error),
+                "quality": rec.quality(), "reason": rec.reason},
             "factors": {} if rec is None else dict(rec.factors),
             "estimate": None if est is None else {"window": est.index, "end_s": est.end_s,
                                                    "estimate_um": dict(est.estimate_um), "usable": est.usable,

@@ -10,6 +10,8 @@ audit, write nothing) unless ``enabled = true``.
 
 ``[opcua]``: the read-only OPC UA server (bound to 127.0.0.1 unless configured; security policies).
 
+``[records]``: how long the record store keeps windows (``keep_days``; default: forever).
+
 See ``profiles/template.toml`` for every key with its meaning.
 """
 
@@ -47,6 +49,13 @@ class Live:
     gap_hold_max_s: float = 600.0
     stale_after_s: float = 150.0
     history_max_h: float | None = None
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Records:
+    """The record store's retention: windows older than ``keep_days`` are deleted (``None``: kept forever)."""
+
+    keep_days: float | None = None
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -167,6 +176,17 @@ def parse_live(root: Table, window_s: float) -> Live:
         t.problem("stale_after_s", f"expected at least one window ({window_s:g} s), got {stale:g}")
     return Live(gap_policy=policy or "hold", gap_hold_max_s=600.0 if hold is None else hold,
                 stale_after_s=stale or 2.5 * window_s, history_max_h=history)
+
+
+def parse_records(root: Table) -> Records:
+    """``[records]`` (default: every window kept)."""
+    t = root.table("records")
+    if t is None:
+        return Records()
+    keep = t.float("keep_days", default=None, min=0.0, min_exclusive=True, max=36500.0,
+                   expected="days of windows to keep in records.sqlite, > 0 (older ones are deleted)")
+    t.done()
+    return Records(keep_days=keep)
 
 
 def parse_compensation(root: Table, axes: tuple[str, ...], window_s: float) -> Compensation:
