@@ -176,10 +176,9 @@ def _lead_in(du: np.ndarray, share: float = 0.01) -> int:
 
 def plot_estimates(estimates: Sequence[Estimate], path: str | Path, *, title: str = "") -> Path:
     """Measured vs estimated displacement per axis, and the residual, for one or more recordings."""
-    import matplotlib
+    from gateway.plotting import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     axes = estimates[0].axes
     fig, grid = plt.subplots(2, len(axes), figsize=(4.2 * len(axes), 6.5), sharex="col", squeeze=False)

@@ -161,9 +161,37 @@ class Profile:
 
 
 # --------------------------------------------------------------------------------------------------------
+def bundled_profiles() -> list[str]:
+    """Names of the profiles shipped with the package (``sim-vmc``, ``paper-vm40iii``, ``template``)."""
+    from gateway import BUNDLED
+
+    return sorted(p.stem for p in BUNDLED.glob("*.toml") if not p.name.endswith(".model.toml"))
+
+
+def resolve_profile(path: str | Path) -> Path:
+    """``path`` when it names a file; else the bundled profile of that name (``sim-vmc`` or ``sim-vmc.toml``).
+
+    A bare name that is neither raises :class:`ProfileError` listing the bundled names, so an installed
+    gateway finds its bundled profiles from any directory.
+    """
+    from gateway import BUNDLED
+
+    p = Path(path)
+    if p.exists() or len(p.parts) != 1:
+        return p
+    name = p.name[:-len(".toml")] if p.name.endswith(".toml") else p.name
+    if name in bundled_profiles():
+        return BUNDLED / f"{name}.toml"
+    from gateway.errors import did_you_mean
+
+    names = bundled_profiles()
+    raise ProfileError(f"{p}: file not found, nor a bundled profile{did_you_mean(name, names)} "
+                       f"(bundled: {', '.join(names)})")
+
+
 def load_profile(path: str | Path) -> Profile:
-    """Read and check a profile; raise :class:`ProfileError` listing every problem."""
-    doc = TomlDoc(path, error=ProfileError)
+    """Read and check a profile (a file or a bundled profile's name); raise :class:`ProfileError` with all problems."""
+    doc = TomlDoc(resolve_profile(path), error=ProfileError)
     root = doc.root
 
     machine = root.table("machine", required=True)

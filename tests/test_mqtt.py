@@ -222,3 +222,12 @@ def test_the_live_gateway_publishes_every_window_beside_opc_ua(broker, tmp_path)
     offsets = json.loads(broker.messages(f"plant1/cncgw/{name}/offsets")[-1].payload)
     assert offsets["mode"] == "write"
     assert set(offsets["commanded"]) == {"x", "y", "z"}
+
+
+def test_the_outbox_is_readable_by_the_gateway_only(broker, tmp_path):
+    data = tmp_path / "data"
+    with output(broker, data) as out:
+        out.window(snap(1))
+        wait_for(lambda: out.status().delivered_through == 1, what="window 1")
+    assert (data / OUTBOX_NAME).stat().st_mode & 0o777 == 0o600
+    assert data.stat().st_mode & 0o777 == 0o700

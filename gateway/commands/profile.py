@@ -1,9 +1,15 @@
-"""``cncgw profile check PROFILE``: validate a machine profile and print a summary."""
+"""``cncgw profile check PROFILE``: validate a machine profile and print a summary.
+
+``cncgw profile new NAME``: write ``NAME.toml``, the template with every key commented, named for the machine.
+"""
 
 from __future__ import annotations
 
 import argparse
+import re
+from pathlib import Path
 
+from gateway.errors import GatewayError
 from gateway.profile import format_summary, load_profile
 
 
@@ -14,11 +20,46 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     check = psub.add_parser("check", help="validate a profile and print a summary",
                             description="Validate a machine profile: every problem is listed with file, "
                                         "line, key, bad value and what was expected.")
-    check.add_argument("profile", metavar="PROFILE", help="profile TOML file")
+    check.add_argument("profile", metavar="PROFILE", help="profile TOML file, or a bundled profile's name (sim-vmc)")
     check.set_defaults(func=run_check)
+    new = psub.add_parser("new", help="write a new profile: the commented template, named for the machine",
+                          description="Write NAME.toml (or --output): the bundled template with every key, its "
+                                      "default and its meaning, machine.name and the model file set to NAME. "
+                                      "Then fill in the factors, devices and channels and run cncgw profile check.")
+    new.add_argument("name", metavar="NAME", help="the machine's name: letters, digits, - and _ (e.g. vmc-3)")
+    new.add_argument("-o", "--output", metavar="FILE", help="where to write it (default: NAME.toml here)")
+    new.set_defaults(func=run_new)
 
 
 def run_check(args: argparse.Namespace) -> int:
     """Check one profile and print its summary."""
     print(format_summary(load_profile(args.profile)))
+    return 0
+
+
+_MACHINE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")
+
+
+def run_new(args: argparse.Namespace) -> int:
+    """Write a commented copy of the template for machine ``args.name``; never overwrite a file."""
+    from gateway import BUNDLED
+
+    name = args.name
+    if not _MACHINE_NAME.fullmatch(name):
+        raise GatewayError(f'profile new: machine name "{name}": expected 1 to 64 letters, digits, - or _, starting '
+                           "with a letter or digit (it names files, MQTT topics and the systemd instance)")
+    out = Path(args.output) if args.output else Path(f"{name}.toml")
+    if out.exists():
+        raise GatewayError(f"{out}: already exists: choose another --output (a profile is never overwritten)")
+    text = (BUNDLED / "template.toml").read_text(encoding="utf-8")
+    head = f"# Profile of machine {name}, written by `cncgw profile new {name}` from the bundled template.\n"
+    text = head + text.replace('name = "my-machine"', f'name = "{name}"', 1).replace(
+        'file = "my-machine.model.toml"', f'file = "{name}.model.toml"', 1)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text(text, encoding="utf-8")
+    load_profile(tmp)  # what is written is a valid profile
+    tmp.replace(out)
+    print(f"wrote {out}: the template for machine {name}; fill in factors, [devices.*] and [channels.*], then "
+          f"`cncgw profile check {out}`")
     return 0

@@ -23,10 +23,9 @@ def _hours(d: Diagnosis) -> np.ndarray:
 
 
 def _plt():
-    import matplotlib
+    from gateway.plotting import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     return plt
 

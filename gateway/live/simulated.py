@@ -85,10 +85,9 @@ def closed_loop_errors(machine: Any, end_s: float, *, start_s: float = 0.0, step
 
 def plot_closed_loop(errs: ClosedLoopErrors, path: str | Path, *, title: str = "") -> Path:
     """Per axis: the error without compensation, with it, and the offset applied, against time (h)."""
-    import matplotlib
+    from gateway.plotting import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     axes = tuple(errs.without_um)
     fig, grid = plt.subplots(len(axes), 1, figsize=(10, 2.8 * len(axes)), sharex=True, squeeze=False)

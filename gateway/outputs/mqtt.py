@@ -191,7 +191,9 @@ class MqttOutput:
         import paho.mqtt.client as paho
 
         s = self.settings
-        self.data_dir.mkdir(parents=True, exist_ok=True)
+        from gateway.records import private_dir
+
+        private_dir(self.data_dir)
         self.outbox = Outbox(self.data_dir / OUTBOX_NAME, machine=self.machine)
         self._catch_up_from_store()
         self._sent_through = self.outbox.acked_through

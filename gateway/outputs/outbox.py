@@ -34,6 +34,9 @@ class Outbox:
     def __init__(self, path: str | Path, *, machine: str) -> None:
         self.path = Path(path)
         self._lock = threading.Lock()
+        from gateway.records import private_file
+
+        private_file(self.path)  # 0600 like the records: the same machine's data
         try:
             self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
             self._db.execute("PRAGMA journal_mode=WAL")

@@ -58,10 +58,9 @@ class PlotData:
 
 def plot(data: PlotData, out: str | Path) -> Path:
     """Write a PNG: spindle speed, spindle currents squared, feeds, feed currents squared, displacement."""
-    import matplotlib
+    from gateway.plotting import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out = Path(out)
     h = data.time_s / 3600.0
