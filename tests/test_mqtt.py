@@ -231,3 +231,20 @@ def test_the_outbox_is_readable_by_the_gateway_only(broker, tmp_path):
         wait_for(lambda: out.status().delivered_through == 1, what="window 1")
     assert (data / OUTBOX_NAME).stat().st_mode & 0o777 == 0o600
     assert data.stat().st_mode & 0o777 == 0o700
+
+
+def test_a_broker_down_at_start_gets_every_window_once_it_is_up(broker, tmp_path):
+    broker.stop_broker()
+    with output(broker, tmp_path) as out:
+        for k in range(4):
+            out.window(snap(k, status="rejected", usable=False, window_reason="channel spindle_i1 saturated"))
+        time.sleep(0.5)
+        assert not out.status().connected
+        broker.start()
+        wait_for(lambda: out.status().delivered_through == 3, what="windows 0-3")
+    health = [json.loads(m.payload) for m in broker.messages("cncgw/vmc-3/health")]
+    assert [h["window"] for h in health] == [0, 1, 2, 3]
+    assert health[0]["reason"] == "channel spindle_i1 saturated"
+    assert health[0]["quality"] == "bad"
+    est = json.loads(broker.messages("cncgw/vmc-3/estimate")[0].payload)
+    assert est["values"]["z"]["quality"] == "uncertain"  # a rejected window's estimate is never good

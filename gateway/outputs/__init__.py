@@ -59,7 +59,9 @@ class WindowSnapshot:
     (``good`` or ``insufficient``). ``factors``: name -> value; ``factor_units``: name -> unit.
     ``estimate_um``: axis -> um; ``usable``: the estimate may drive compensation (else ``reason``).
     ``commanded_um``/``applied_um``: the offsets commanded and read back from the CNC (empty when the
-    writer has none); ``mode``: ``write`` or ``dry-run``; ``verified``: the last write read back equal.
+    writer has none) as the writer reports them when the window is handed over (the write that follows this
+    window may still be on its way: the next window's message shows it); ``mode``: ``write`` or ``dry-run``;
+    ``verified``: the last write read back equal.
     """
 
     machine: str
@@ -83,6 +85,7 @@ class WindowSnapshot:
     verified: bool = False
     writes: int = 0
     alarms: tuple[str, ...] = ()
+    window_reason: str = ""  # why the window is not good ("" when it is)
     source: str = "live"  # "live", or "records" for a window rebuilt from the records store after a restart
 
 
@@ -112,7 +115,8 @@ def snapshot(gateway: Any, record: Any, update: Any) -> WindowSnapshot:
         estimate_um=_frozen(update.estimate_um), usable=bool(update.usable), reason=update.reason,
         filled_windows=update.filled, mode=comp.get("mode", "dry-run"),
         commanded_um=_frozen(comp.get("commanded_um", {})), applied_um=_frozen(last.get("applied_um", {})),
-        verified=bool(last.get("verified", False)), writes=int(comp.get("writes", 0)), alarms=alarms)
+        verified=bool(last.get("verified", False)), writes=int(comp.get("writes", 0)), alarms=alarms,
+        window_reason=getattr(record, "reason", ""))
 
 
 def record_snapshot(profile: Any, record: Any) -> WindowSnapshot:
@@ -127,4 +131,4 @@ def record_snapshot(profile: Any, record: Any) -> WindowSnapshot:
         missed_ticks=record.missed_ticks, devices_in_error=tuple(record.devices_in_error),
         factors=_frozen(record.factors), factor_units=_frozen({f.name: f.unit for f in profile.factors}),
         reason="window taken from the records store after a restart: estimate and offsets not stored",
-        source="records")
+        window_reason=getattr(record, "reason", ""), source="records")

@@ -5,7 +5,8 @@ Four messages a window, one per topic ``<prefix>/<machine>/<kind>``:
 - ``estimate``: the estimated thermal displacement per axis (um), whether it may drive compensation;
 - ``offsets``: the offsets commanded to the CNC and read back (um), the writer's mode, verified or not;
 - ``factors``: the window's heat-generating factors, each with its unit;
-- ``health``: the window's status, coverage, samples, missed ticks, devices in error, active alarms.
+- ``health``: the window's status and why it is not good, coverage, samples, missed ticks, devices in error,
+  active alarms.
 
 Every message carries ``machine``, ``window`` (the window index: ``end_s / window_s - 1``, unique per
 machine and increasing) and ``end_s`` (the window's end, epoch seconds): a consumer de-duplicates QoS 1
@@ -45,8 +46,8 @@ def window_payloads(s: WindowSnapshot) -> list[tuple[str, dict[str, Any]]]:
                "values": {k: {**Value.of(v, trusted=good).as_json(), "unit": s.factor_units.get(k, "")}
                           for k, v in s.factors.items()}}
     coverage = s.coverage if math.isfinite(s.coverage) else None
-    health = {**head, "status": s.status, "coverage": coverage, "samples_taken": s.samples_taken,
-              "samples_expected": s.samples_expected, "missed_ticks": s.missed_ticks,
+    health = {**head, "status": s.status, "reason": s.window_reason, "coverage": coverage,
+              "samples_taken": s.samples_taken, "samples_expected": s.samples_expected, "missed_ticks": s.missed_ticks,
               "devices_in_error": list(s.devices_in_error), "alarms": list(s.alarms),
               "quality": (Quality.GOOD if good and not s.alarms else Quality.UNCERTAIN if good else Quality.BAD).value}
     return [("estimate", estimate), ("offsets", offsets), ("factors", factors), ("health", health)]
