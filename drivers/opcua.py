@@ -10,7 +10,10 @@ Channel keys: ``node_id`` (``"ns=2;s=Spindle.ActSpeed"``; ``nsu=<namespace uri>;
 Objects folder, each ``namespace index:name``), and ``scale``/``offset`` (``value = raw * scale + offset``).
 
 Quality: a value with a Good status code is ``GOOD``, Uncertain ``STALE`` and Bad ``BAD`` (not used); a
-subscription that has not yet reported a node gives ``BAD``. A node that is not a number is ``BAD``.
+subscription that has not yet reported a node gives ``BAD``. A node that is not a number is ``BAD``. A
+subscription holds the last value of a node that does not change, so a dead link would look like a quiet
+machine: when no publish response (data or the server's keep-alive, due every 10 publishing intervals)
+came for three keep-alive periods (at least 1 s), the read fails and the runner reconnects (asyncua >= 2.0).
 
 Link budget. An OPC UA server is not a 2 ms device: a CNC updates its OPC UA variables from its own cycle,
 commonly every 10 to 100 ms (the nodes' MinimumSamplingInterval says so), and the asyncua client needs
@@ -32,12 +35,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from drivers.base import DeviceOptions, Driver, LinkBudget, Quality, parse_common_options, parse_scaling
-from gateway.errors import DriverError
+from gateway.errors import DeviceTimeout, DriverError
 
 MODES = ("poll", "subscription")
 #: the shortest period refused at profile load (see the module docstring)
@@ -85,6 +89,8 @@ class OpcUaDriver(Driver):
         self._latest: list[tuple[float, Quality]] = []
         self._subscription: Any = None
         self._revised_s: float | None = None
+        self._stale_s = math.inf  # no publish response (data or keep-alive) for this long: the subscription is dead
+        self._subscribed_at = 0.0
 
     # -- profile -------------------------------------------------------------------------------------------
     @classmethod
@@ -212,15 +218,27 @@ class OpcUaDriver(Driver):
                                                  RequestedMaxKeepAliveCount=10, MaxNotificationsPerPublish=0,
                                                  PublishingEnabled=True, Priority=0)
         sub = await self._client.create_subscription(params, Handler())
+        if not hasattr(sub, "last_publish_at"):  # asyncua < 2: keep-alives cannot be seen, a dead link could not be
+            raise DriverError(f'device "{self.name}" ({self.kind}): mode = "subscription" needs asyncua >= 2.0 '
+                              '(to see the server\'s keep-alives); use mode = "poll" or upgrade asyncua')
         self._subscription = sub
+        self._subscribed_at = time.monotonic()
         await sub.subscribe_data_change(self._nodes, sampling_interval=period_ms, queuesize=1)
         revised_pub = sub.parameters.RequestedPublishingInterval  # asyncua updates it to the revised one
         minimum = [await n.read_attribute(ua.AttributeIds.MinimumSamplingInterval) for n in self._nodes]
         mins = [m.Value.Value for m in minimum if m.Value is not None and m.Value.Value is not None]
         self._revised_s = max([revised_pub, *mins]) / 1000.0
+        # the server answers a publish at least every keep-alive count x publishing interval, changes or not
+        self._stale_s = max(1.0, 3.0 * params.RequestedMaxKeepAliveCount * revised_pub / 1000.0)
 
     def _read_raw(self) -> tuple[list[float], list[Quality]]:
         if self.options.mode == "subscription":
+            last = getattr(self._subscription, "last_publish_at", None) or self._subscribed_at
+            silent = time.monotonic() - last
+            if silent > self._stale_s:  # the values held are stale: never hand them on as good
+                raise DeviceTimeout(f'device "{self.name}" ({self.kind}): no publish response (data or keep-alive) '
+                                    f"from {self.options.endpoint} for {silent:.1f} s (at most {self._stale_s:g} s "
+                                    "expected): the subscription is dead")
             values = [v for v, _ in self._latest]
             return values, [q for _, q in self._latest]
         results = self._post(self._read_all())

@@ -117,3 +117,17 @@ def test_coarse_sampling_of_a_rectified_ripple_what_the_docstring_says():
              for phi in np.linspace(0, math.pi / 2, 50)]
     assert min(worst) < -0.99
     assert max(worst) > 0.99
+
+
+def test_a_dead_subscription_fails_the_read_instead_of_holding_stale_values(cnc, tmp_path):
+    devices, _, clock = cnc
+    profile = live_profile(devices, tmp_path, via="opcua", device_keys={"mode": "subscription", "timeout_s": 0.5})
+    with make_driver(profile, "cnc", clock) as driver:
+        time.sleep(0.1)
+        assert driver.read().quality[0] == Quality.GOOD
+        time.sleep(1.2)  # publish responses keep coming: longer than the 1 s limit, still alive
+        assert driver.read().quality[0] == Quality.GOOD
+        driver._subscription.last_publish_at -= 5.0  # as if the server went silent 5 s ago (a cut cable)
+        with pytest.raises(DriverError, match=r"no publish response \(data or keep-alive\) from opc.tcp://127.0.0.1:"
+                                               r"\d+/cnc/ for 5.\d s \(at most 1 s expected\): the subscription is dead"):
+            driver.read()
