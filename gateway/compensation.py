@@ -28,6 +28,13 @@ writer runs, inputs good or not: holding is a decision of the gateway, dropping 
 watchdog's. On stop the writer stops beating and leaves the offsets in place: back within the watchdog
 time, a restarted gateway continues seamlessly; later, the CNC's watchdog ramps them out.
 
+Audit. Every write is a row of the audit log: ``write`` (sent and read back), ``refused`` (the CNC said no:
+nothing applied), ``unknown`` (no answer in time: the CNC may or may not have applied it). The first
+read of the CNC that follows an unknown write (the read-back after it, a re-synchronisation, a heartbeat)
+adds a ``resolved`` row with what the CNC applies, and any read showing offsets other than the last
+audited ones (a write applied after its answer was lost, a watchdog ramp, a reset CNC) adds an ``observed``
+row: the audited history of applied offsets follows the CNC's, value for value.
+
 Dry run (``enabled = false``): the same computation, logged and audited as ``dry-run``; no connection.
 """
 
@@ -108,6 +115,8 @@ class CompensationWriter:
         self.latencies_s: list[float] = []  # window close (update received) -> verified write, wall seconds
         self._received_wall: float | None = None
         self.hold_requested = False
+        self._unresolved: WriteEntry | None = None  # a write whose outcome is unknown (no answer in time)
+        self._audited_counts: dict[str, int] | None = None  # the CNC's applied offsets as last audited
 
     @property
     def writing(self) -> bool:
@@ -207,6 +216,7 @@ class CompensationWriter:
         self._link = link
         try:
             state = link.state()
+            self._observe(now, state)
             # command what the CNC applies now before enabling it: enabling applies the command at once
             link.write_offsets(state.applied_counts)
             self._beat += 1
@@ -249,6 +259,7 @@ class CompensationWriter:
             return
         self.beats += 1
         self.cnc_state = state
+        self._observe(now, state)
         self._next_beat_s = now + self.settings.heartbeat_period_s
         expected = {a.axis: round(self.commanded_um[a.axis] / a.unit_um) for a in self.settings.axes}
         if state.active is False or state.applied_counts != expected:
@@ -365,10 +376,15 @@ class CompensationWriter:
             state = self._link.state()
         except CncRejected as exc:  # the CNC said no: nothing of the request applies; the link is fine
             self.failures += 1
+            self._record(now, window, "refused", estimate, target, commanded, dict(self.commanded_um), False, None,
+                         f"refused by the CNC: {exc}")
             self.alarms.raise_("cnc", f"write of {_fmt(commanded)} refused: {exc}", now)
             self._refresh_after_failure(now)
             return
-        except (DriverError, CompensationError) as exc:
+        except (DriverError, CompensationError) as exc:  # sent, no answer: applied or not, the next read says
+            self._unresolved = self._record(now, window, "unknown", estimate, target, commanded,
+                                            dict.fromkeys(self.axes, math.nan), False, None,
+                                            f"outcome unknown ({exc}); resolved by the next read of the CNC")
             self._link_failed(now, f"write of {_fmt(commanded)} failed: {exc}")
             self._refresh_after_failure(now)
             return
@@ -376,6 +392,7 @@ class CompensationWriter:
         verified = all(state.applied_counts.get(a) == counts[a] for a in self.axes)
         self._record(now, window, "write", estimate, target, commanded, state.applied_um, verified, state.status,
                      note)
+        self._audited_counts = dict(state.applied_counts)
         self.commanded_um = dict(state.applied_um)  # the CNC's word is the truth
         if verified:
             self.alarms.clear("verify", now)
@@ -401,20 +418,41 @@ class CompensationWriter:
         except (DriverError, CompensationError):
             return
         self.cnc_state = state
+        self._observe(now, state)
         self.commanded_um = dict(state.applied_um)
+
+    def _observe(self, now: float, state: CncState) -> None:
+        """Audit what the CNC applies when it is not what the audit log last said (see the module docstring)."""
+        u = self._unresolved
+        if u is not None:
+            self._unresolved = None
+            counts = {a.axis: round(u.commanded_um[a.axis] / a.unit_um) for a in self.settings.axes}
+            applied = state.applied_counts == counts
+            what = "applied as written" if applied else f"not applied (the CNC applies {_fmt(state.applied_um)})"
+            self._record(now, u.window, "resolved", u.estimate_um, u.target_um, u.commanded_um, state.applied_um,
+                         applied, state.status, f"the write of t = {u.t_s:.0f} s whose outcome was unknown: {what}")
+        elif self._audited_counts is not None and dict(state.applied_counts) != self._audited_counts:
+            self._record(now, None, "observed", dict.fromkeys(self.axes, math.nan), dict.fromkeys(self.axes, math.nan),
+                         dict(self.commanded_um), state.applied_um, False, state.status,
+                         "the CNC applies other offsets than last audited: a write applied after its answer was "
+                         "lost, a watchdog ramp or a reset")
+        self._audited_counts = dict(state.applied_counts)
 
     def _record(self, now: float, window: int | None, mode: str, estimate: Mapping[str, float],
                 target: Mapping[str, float], commanded: Mapping[str, float], applied: Mapping[str, float],
-                verified: bool, status: int | None, note: str) -> None:
+                verified: bool, status: int | None, note: str) -> WriteEntry:
         entry = WriteEntry(t_s=now, window=window, mode=mode, estimate_um=MappingProxyType(dict(estimate)),
                            target_um=MappingProxyType(dict(target)), commanded_um=MappingProxyType(dict(commanded)),
                            applied_um=MappingProxyType(dict(applied)), verified=verified, status=status, note=note)
-        self.writes += 1
-        self.last_write = entry
+        if mode in ("write", "dry-run", "unknown", "refused"):  # sent (or, dry, computed), not observed
+            self.writes += 1
+        if mode in ("write", "dry-run", "resolved"):  # what the CNC applies after a write of ours
+            self.last_write = entry
         if self.audit is not None:
             self.audit.write(entry)
         log.info("%s window %s: commanded %s, applied %s%s", mode, window, _fmt(commanded), _fmt(applied),
-                 "" if verified else " (MISMATCH)")
+                 "" if verified or mode in ("unknown", "observed", "refused") else " (MISMATCH)")
+        return entry
 
     def status(self) -> dict[str, Any]:
         """Mode, link state, offsets, counters and the last write, for health and OPC UA."""

@@ -200,7 +200,7 @@ def test_cnc_unreachable_raises_an_alarm_writes_nothing_and_resynchronises(cnc, 
         feed(w, clock, update(1, z=-2.0), dt=3.0)
         assert "cnc" in w.alarms
         assert not w.synced
-        assert len(list(audit.writes())) == 1
+        assert [e.mode for e in audit.writes()] == ["write", "unknown"]  # sent, never answered
         cnc.faults.drop_replies = False
         for _ in range(200):  # reconnect attempts are spaced by reconnect_s of wall time
             if w.synced:
@@ -211,13 +211,58 @@ def test_cnc_unreachable_raises_an_alarm_writes_nothing_and_resynchronises(cnc, 
         assert "cnc" not in w.alarms
         feed(w, clock, update(2, z=-3.0), dt=1.0)
         feed(w, clock, update(3, z=-3.0))
-        zs = [e.commanded_um["z"] for e in audit.writes()]
-        assert zs == pytest.approx([1.0, 3.0])  # from what the CNC applied (1.0), one step of 2 um
-        assert all(e.verified for e in audit.writes())
+        rows = [(e.mode, e.commanded_um["z"], e.applied_um["z"], e.verified) for e in audit.writes()]
+        assert math.isnan(rows[1][2])  # unknown: nothing known applied
+        # the read at re-synchronisation resolves it (the silent CNC never applied it); then, from what the CNC
+        # applied (1.0), one step of 2 um
+        assert [r for i, r in enumerate(rows) if i != 1] == [("write", 1.0, 1.0, True), ("resolved", 2.0, 1.0, False),
+                                                             ("write", 3.0, 3.0, True)]
         kinds = [k for _, k, n, _ in audit.events() if n == "cnc"]
         assert kinds[0] == "sync"
         assert "alarm" in kinds
         assert kinds[-2:] == ["clear", "sync"]
+    finally:
+        w.stop()
+
+
+def test_a_write_answered_too_late_is_audited_unknown_then_resolved_and_the_audit_follows_the_cnc(
+        cnc, source, clock, audit):
+    w = make_writer(settings(cnc, max_step_um=1.0, timeout_s=0.3), clock, audit)
+    try:
+        feed(w, clock, update(0, z=-1.0))
+        cnc.faults.reply_delay_s = 0.8  # the CNC answers after the gateway gave up, and applies the write anyway
+        w.submit(update(1, z=-2.0))
+        w.service()
+        assert [e.mode for e in audit.writes()] == ["write", "unknown"]
+        assert "cnc" in w.alarms
+        for _ in range(300):  # the late request lands in the CNC
+            if cnc.update().applied_um["z"] == pytest.approx(2.0):
+                break
+            time.sleep(0.01)
+        assert cnc.update().applied_um["z"] == pytest.approx(2.0)  # "failed", yet applied: the audit gap of old
+        cnc.faults.reply_delay_s = 0.0
+        for _ in range(200):
+            if w.synced:
+                break
+            time.sleep(0.01)
+            w.service()
+        assert w.synced
+        feed(w, clock, update(2, z=-3.0), update(3, z=-3.0))
+        rows = list(audit.writes())
+        assert [e.mode for e in rows] == ["write", "unknown", "resolved", "write"]
+        resolved = rows[2]
+        assert resolved.verified  # read back: applied as written
+        assert resolved.applied_um["z"] == pytest.approx(2.0)
+        assert resolved.window == 1
+        assert "whose outcome was unknown: applied as written" in resolved.note
+        # the audited history of applied offsets is the CNC's, value for value, and never a jump
+        audited = [e.applied_um["z"] for e in rows if math.isfinite(e.applied_um["z"])]
+        audited = [z for i, z in enumerate(audited) if i == 0 or z != audited[i - 1]]
+        cnc_history = [c["z"] for c in source.compensation]
+        assert cnc_history[0] == 0.0  # before the first write: what the writer took over (a "sync" event)
+        assert audited == pytest.approx(cnc_history[1:])
+        assert audited == pytest.approx([1.0, 2.0, 3.0])
+        assert all(abs(b - a) <= 1.0 + 1e-9 for a, b in itertools.pairwise(audited))
     finally:
         w.stop()
 
@@ -232,7 +277,8 @@ def test_a_write_the_cnc_refuses_is_not_assumed_applied(source, clock, audit):
         assert "refused with exception 3 (illegal data value)" in next(a.message for a in w.alarms.active())
         assert w.commanded_um["z"] == pytest.approx(1.5)  # read back from the CNC, not assumed
         assert devices.cnc.update().applied_um["z"] == pytest.approx(1.5)
-        assert [e.commanded_um["z"] for e in audit.writes()] == pytest.approx([1.5])
+        assert [(e.mode, e.commanded_um["z"], e.applied_um["z"]) for e in audit.writes()] == [
+            ("write", 1.5, 1.5), ("refused", 4.0, 1.5)]
     finally:
         w.stop()
         devices.stop()
@@ -258,8 +304,10 @@ def test_after_a_watchdog_trip_the_writer_resumes_from_the_ramped_offsets(cnc, c
         assert not status.tripped
         assert status.applied_um["z"] == pytest.approx(3.0)  # taken over from the ramp, no jump back to 6
         feed(w, clock, update(4, z=-6.0), update(5, z=-6.0))
-        zs = [e.applied_um["z"] for e in audit.writes()]
-        assert all(abs(b - a) <= 2.0 + 1e-9 for a, b in itertools.pairwise(zs))
+        rows = [(e.mode, e.applied_um["z"]) for e in audit.writes()]
+        assert rows == [("write", 2.0), ("write", 4.0), ("write", 6.0), ("observed", 3.0), ("write", 5.0),
+                        ("write", 6.0)]  # the CNC's ramp is audited as what it did, not as a write of ours
+        assert all(abs(b - a) <= 2.0 + 1e-9 for (ma, a), (mb, b) in itertools.pairwise(rows) if mb == "write")
         assert cnc.update().applied_um["z"] == pytest.approx(6.0)
         assert not cnc.update().tripped
     finally:
