@@ -11,13 +11,16 @@ New protocol (``--protocol new``, the default), per effect and plant variant (``
 machine's gains and time constants perturbed by seed N, simulators/machine/variants.py):
 
 - the effect acts in EVERY recording: the nine identification experiments (the paper's, bundled) carry
-  the effect's tables too, each starting at its own time of day drawn from the variant (the room keeps
-  cycling and drifting while an experiment runs; with "room recorded" the experiments record room_c too);
+  the effect's tables too, one a day, each starting at its own time of day drawn from the variant (the room
+  keeps cycling and drifting while an experiment runs; with "room recorded" the experiments record room_c
+  too); every recording is stamped with its clock time (``start_time_s``), as an exported one is;
 - ``cncgw identify`` on the nine experiments gives the baseline model;
 - ``cncgw diagnose --model baseline exp*.csv day*.csv -o DIR`` on the experiments plus four production days
-  (midnight to midnight, each starting at rest; kinds of day: two shifts, day shift, late shift, an idle
-  day, in an order drawn from the variant; jobs of a job shop drawn likewise) - timed;
-- scored on a fresh production day (another schedule, other noise) that nothing was fitted on, with
+  (the four dates after the experiments, midnight to midnight, each starting at rest in that date's room;
+  kinds of day: two shifts, day shift, late shift, an idle day, in an order drawn from the variant; jobs of
+  a job shop drawn likewise) - timed;
+- scored on a fresh production day (two dates later, another schedule, other noise) that nothing was
+  fitted on, with
   ``cncgw estimate --json`` and (a) the baseline, (b) the model diagnose wrote (``DIR/*.diagnosed.model.toml``);
 - the no-effect case of each variant (same schedules and noise, no effect) is the reference: an axis whose
   baseline fresh-day RMS stands above that level (x1.3 and +0.3 um) is an axis the effect moves; an effect
@@ -87,6 +90,8 @@ SJTU_CSV = SHARED / "sjtu-spindle-thermal" / "thermal_expansion_error_original.c
 ACE_PROFILE = ROOT / "bench" / "profiles" / "ace-lathe.toml"
 SJTU_PROFILE = ROOT / "bench" / "profiles" / "sjtu-spindle.toml"
 AXES = ("x", "y", "z")
+#: recordings carry clock times, as exported ones do: Monday 2 March 2026 00:00 UTC is the first date
+EPOCH0_S, DAY_S = 1_772_409_600, 86_400
 IDENTIFICATION_SCENARIOS = ("spindle-1000rpm", "spindle-500rpm", "spindle-400-600rpm", "feed-x-fast", "feed-x-accel",
                             "feed-y-fast", "feed-y-accel", "feed-z-fast", "feed-z-accel")
 #: an axis "stands above the no-effect level" when its baseline fresh-day RMS exceeds the level by both
@@ -230,13 +235,16 @@ def new_plan(effect_name: str, variant: int) -> Plan:
     effect = EFFECTS[effect_name]
     seed = case_seed(variant, effect_name)
     rng = np.random.default_rng(seed)
-    starts = rng.uniform(0.0, 24.0, size=len(IDENTIFICATION_SCENARIOS))
+    starts = np.round(rng.uniform(0.0, 24.0, size=len(IDENTIFICATION_SCENARIOS)) * 60.0) / 60.0  # whole minutes
     order = [list(DAY_KINDS)[i] for i in rng.permutation(len(DAY_KINDS))]
     fresh_kind = str(rng.choice(["two shifts", "day shift"]))
     step_exp = int(rng.integers(0, len(IDENTIFICATION_SCENARIOS)))
     step_days = set(rng.choice(4, size=2, replace=False).tolist())
     step_h = rng.uniform(0.3, 0.8, size=4 + 1)
-    room_base = 20.0
+    # the weather: each date's mean room temperature within +-1 K of 20 (with a room effect; recorded with
+    # a thermometer); the drift runs on inside each recording. Each recording starts at rest in its room.
+    weather = rng.uniform(-1.0, 1.0, size=32)  # drawn in every case: the schedules stay the same
+    base = 20.0 + weather if effect.tables.get("room_cycle") else np.full(32, 20.0)
 
     def plant(doc: dict) -> dict:
         doc["plant"] = {"variant": variant}
@@ -248,7 +256,9 @@ def new_plan(effect_name: str, variant: int) -> Plan:
         doc["scenario"]["name"] = f"exp-{name}"
         doc["scenario"]["seed"] = seed + 1 + k
         doc["scenario"]["description"] = f"{doc['scenario'].get('description', '')}; starts at {starts[k]:.2f} h"
-        doc["room"] = {"temperature_c": room_base, "thermometer": effect.thermometer}
+        doc["scenario"]["start_time_s"] = EPOCH0_S + k * DAY_S + round(starts[k] * 3600.0)
+        doc["room"] = {"temperature_c": round(float(base[k]), 3),
+                       "thermometer": effect.thermometer}
         step = 12.0 * step_h[4] if (effect.step and k == step_exp) else None
         tables = _effect_tables(effect, start_h=float(starts[k]), step_at_h=step)
         if tables:
@@ -257,11 +267,10 @@ def new_plan(effect_name: str, variant: int) -> Plan:
 
     def day_doc(name: str, kind: str, noise_seed: int, day_index: int, step: float | None) -> str:
         drng = np.random.default_rng([seed, day_index])
-        drift = effect.tables.get("room_cycle", {}).get("drift_k_per_h", 0.0)
+        date = len(IDENTIFICATION_SCENARIOS) + day_index  # production after the experiments, one a day
         doc = {"scenario": {"name": name, "description": f"{kind}, day {day_index}", "seed": noise_seed,
-                            "duration_h": 24},
-               # the weather drift carried across days in the base temperature; each day starts at rest
-               "room": {"temperature_c": round(room_base + 24.0 * drift * day_index, 3),
+                            "duration_h": 24, "start_time_s": EPOCH0_S + date * DAY_S},
+               "room": {"temperature_c": round(float(base[date]), 3),
                         "thermometer": effect.thermometer},
                "sensors": {"noise_um": 0.1},
                "segments": _day_segments(drng, kind, f"d{day_index}_")}
@@ -273,7 +282,7 @@ def new_plan(effect_name: str, variant: int) -> Plan:
     days = {f"day{d + 1}": day_doc(f"day{d + 1}", order[d], seed + 20 + d, d + 1,
                                    24.0 * step_h[d] if (effect.step and d in step_days) else None)
             for d in range(4)}
-    fresh = {"fresh": day_doc("fresh", fresh_kind, seed + 50, 5, None)}
+    fresh = {"fresh": day_doc("fresh", fresh_kind, seed + 50, 6, None)}  # a day after the four, not the next
     return Plan(experiments=exps, days=days, fresh=fresh)
 
 
@@ -287,13 +296,13 @@ def old_plan(effect_name: str, seed: int) -> Plan:
         doc["scenario"]["seed"] = 1000 * seed + k
         exps[f"exp-{name}"] = _dump(doc)
 
-    def run(name: str, s: int) -> str:
+    def run(name: str, s: int, start: int) -> str:
         rng = np.random.default_rng(s)
         order = [list(DAY_KINDS)[i] for i in rng.permutation(len(DAY_KINDS))]
         segs: dict[str, dict] = {}
         for d, kind in enumerate(order):
             segs |= _day_segments(rng, kind, f"d{d}_")
-        doc = {"scenario": {"name": name, "seed": s, "duration_h": 96},
+        doc = {"scenario": {"name": name, "seed": s, "duration_h": 96, "start_time_s": start},
                "room": {"temperature_c": 20.0, "thermometer": effect.thermometer},
                "sensors": {"noise_um": 0.1}, "segments": segs}
         step = float(rng.uniform(0.3, 0.8) * 96) if effect.step else None
@@ -303,7 +312,8 @@ def old_plan(effect_name: str, seed: int) -> Plan:
         return _dump(doc)
 
     s = 10_000 + 97 * seed + (500 if effect_name == "none b" else 0)
-    return Plan(experiments=exps, days={"days": run("days", s)}, fresh={"fresh": run("fresh", s + 5000)})
+    return Plan(experiments=exps, days={"days": run("days", s, EPOCH0_S)},
+                fresh={"fresh": run("fresh", s + 5000, EPOCH0_S + 5 * DAY_S)})
 
 
 # ----------------------------------------------------------------------------------------------- running ---

@@ -48,6 +48,9 @@ def test_the_room_keeps_its_time_of_day_in_each_experiment(bench):
     peaks = {round(sc.effects.room_cycle.peak_at_h, 3) for sc in exps}
     assert len(peaks) == 9  # each experiment starts at its own time of day
     assert all(0.0 <= p < 24.0 for p in peaks)
+    for sc in plan.values():  # stamped with clock times consistent with the room: warmest at 15:00
+        hour_of_start = (sc.start_time_s - bench.EPOCH0_S) % 86400 / 3600.0
+        assert (hour_of_start + sc.effects.room_cycle.peak_at_h) % 24.0 == pytest.approx(15.0, abs=1e-3)
     assert all(sc.room.thermometer for sc in plan.values())
     assert plan["day1"].effects.room_cycle.peak_at_h == 15.0  # days run from midnight, warmest at 15:00
     assert plan["day1"].effects.room_cycle.drift_k_per_h == 0.02
@@ -60,6 +63,9 @@ def test_schedules_and_noise_depend_on_the_variant_not_the_effect(bench):
         assert sc.effects.enabled == ("cabinet",)
         assert b[name].effects.enabled == ()
         assert dataclasses.replace(sc, effects=b[name].effects) == b[name], name
+    room, none = _parse(bench.new_plan("room not recorded", 3)), b
+    for name, sc in room.items():  # the room's tables and weather aside, the same recordings
+        assert dataclasses.replace(sc, effects=none[name].effects, room=none[name].room) == none[name], name
     other = _parse(bench.new_plan("none", 4))
     assert other["fresh"].segments != b["fresh"].segments
     assert other["fresh"].seed != b["fresh"].seed

@@ -81,6 +81,22 @@ def test_record_writes_a_recording_the_gateway_reads_and_a_truth_file(tmp_path: 
     assert truth.meta["effects"] == "room_cycle, eddy_loss"
 
 
+def test_start_time_stamps_the_recording_and_changes_nothing_else(tmp_path: Path):
+    stamped = tmp_path / "stamped.toml"
+    stamped.write_text(SMALL.replace("duration_h = 1\n", "duration_h = 1\nstart_time_s = 1772409600\n"))
+    plain = tmp_path / "plain.toml"
+    plain.write_text(SMALL)
+    for sc, d in ((stamped, "a"), (plain, "b")):
+        assert main(["simulate", "record", str(sc), "-o", str(tmp_path / d), "--no-progress"]) == 0
+    a, b = (read_back(tmp_path / d / "small.csv") for d in "ab")
+    np.testing.assert_array_equal(a.time_s, 1772409600.0 + 60.0 * np.arange(1, 61))
+    np.testing.assert_array_equal(b.time_s, 60.0 * np.arange(1, 61))
+    for axis in AXES:
+        np.testing.assert_array_equal(a.displacement[axis], b.displacement[axis])
+    np.testing.assert_array_equal(a.extras["room_c"], b.extras["room_c"])
+    assert simulate(load_scenario(stamped)).recording().time_s[0] == 1772409660.0
+
+
 def test_record_is_deterministic_and_the_seed_can_be_overridden(tmp_path: Path):
     for d in ("a", "b"):
         assert main(["simulate", "record", "random-spindle", "-o", str(tmp_path / d), "--no-progress"]) == 0

@@ -64,6 +64,8 @@ def plot(data: PlotData, out: str | Path) -> Path:
 
     out = Path(out)
     h = data.time_s / 3600.0
+    if len(h) and h[0] > 24 * 365:  # clock times (a scenario's start_time_s, an export): hours from the start
+        h = h - h[0] + (h[1] - h[0] if len(h) > 1 else 0.0)
     fig, ax = plt.subplots(5, 1, figsize=(11, 13), sharex=True, constrained_layout=True)
     ax[0].plot(h, data.factors["spindle_speed"], color="k", lw=1)
     ax[0].set_ylabel("spindle speed\nmean (rpm)")

@@ -77,7 +77,10 @@ def room_temperature(scenario: Scenario, t_s: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class SimulationResult:
-    """One offline run: per-window rows stamped at each window's end (``time_s``)."""
+    """One offline run: per-window rows stamped at each window's end (``time_s``, from the run's start).
+
+    Recordings carry ``stamps_s``: the same ends from the scenario's ``start_time_s`` (a clock time).
+    """
 
     scenario: Scenario
     machine: MachineParams
@@ -91,6 +94,11 @@ class SimulationResult:
     room_c: np.ndarray
     heat_w: dict[str, np.ndarray]
     contributions_um: dict[str, np.ndarray]  #: per effect: run with it minus run without it (rows x 3)
+
+    @property
+    def stamps_s(self) -> np.ndarray:
+        """The time column a recording carries: ``time_s`` from the scenario's ``start_time_s``."""
+        return self.time_s + self.scenario.start_time_s if self.scenario.start_time_s else self.time_s
 
     @property
     def factors(self) -> dict[str, np.ndarray]:
@@ -118,7 +126,7 @@ class SimulationResult:
             raise ValueError(f"which must be 'measured' or 'true'. Got {which!r}")
         disp = self.measured_um if which == "measured" else self.true_um
         extras = {"room_c": self.room_c} if self.scenario.room.thermometer else {}
-        return Recording(source=f"{self.scenario.name}.csv", period_s=self.machine.window_s, time_s=self.time_s,
+        return Recording(source=f"{self.scenario.name}.csv", period_s=self.machine.window_s, time_s=self.stamps_s,
                          present=np.ones(len(self.time_s), dtype=bool), factors=self.factors,
                          displacement={a: disp[:, i].copy() for i, a in enumerate(AXES)}, extras=extras,
                          meta=_meta(self.scenario))
@@ -210,10 +218,10 @@ def write_run(result: SimulationResult, out_dir: str | Path) -> tuple[Path, Path
     sc = result.scenario
     meta = _meta(sc) | {"machine": "sim-vmc", "period_s": f"{result.machine.window_s:g}",
                         "source": "cncgw simulate record"}
-    rec = write_recording(out / f"{sc.name}.csv", time_s=result.time_s, columns=result.recording_columns(),
+    rec = write_recording(out / f"{sc.name}.csv", time_s=result.stamps_s, columns=result.recording_columns(),
                           meta=meta)
     truth_meta = meta | {"kind": "ground truth (not a recording: the gateway never reads this)",
                          "effects": ", ".join(sc.effects.enabled) or "none"}
-    truth = write_recording(out / f"{sc.name}.truth.csv", time_s=result.time_s,
+    truth = write_recording(out / f"{sc.name}.truth.csv", time_s=result.stamps_s,
                             columns=result.truth_columns(), meta=truth_meta)
     return rec, truth

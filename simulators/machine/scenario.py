@@ -8,6 +8,8 @@ A scenario file::
     seed = 1                          # sensor noise; same seed, same recording
     initial_idle_min = 30             # at rest before the first segment
     duration_h = 12                   # default: idle + segments; the rest is at rest
+    start_time_s = 0                  # time stamp of the start in the recording's time column (e.g. Unix
+                                      # time, as an exported recording carries); the physics ignores it
 
     [room]
     temperature_c = 20.0              # constant unless [effects.room_cycle] is on
@@ -97,6 +99,8 @@ class Scenario:
     room: Room = field(default_factory=Room)
     noise_um: float = 0.1
     effects: Effects = field(default_factory=Effects)
+    #: time stamp of the run's start in a recording's time column (s); the physics ignores it
+    start_time_s: float = 0.0
     #: plant variant (``[plant] variant``): 0 is the nominal machine (see :mod:`simulators.machine.variants`)
     variant: int = 0
 
@@ -146,13 +150,14 @@ def parse_scenario(doc: TomlDoc, *, machine: MachineParams = DEFAULT_MACHINE) ->
     """Check a parsed TOML document and build the :class:`Scenario`."""
     root = doc.root
     head = root.table("scenario")
-    name, description, seed, idle_min, duration_h = doc.path.stem, "", 0, 0.0, None
+    name, description, seed, idle_min, duration_h, start_time = doc.path.stem, "", 0, 0.0, None, 0.0
     if head is not None:
         name = head.str("name", default=name) or name
         description = head.str("description", default="") or ""
         seed = head.int("seed", default=0, min=0)
         idle_min = head.float("initial_idle_min", default=0.0, min=0.0, max=1e6)
         duration_h = head.float("duration_h", default=None, min=0.0, min_exclusive=True, max=24 * 365)
+        start_time = head.float("start_time_s", default=0.0, min=0.0, max=1e11) or 0.0
         head.done()
 
     room = Room()
@@ -202,7 +207,7 @@ def parse_scenario(doc: TomlDoc, *, machine: MachineParams = DEFAULT_MACHINE) ->
     doc.raise_problems()
     return Scenario(name=name, description=description, source=str(doc.path), seed=seed,
                     duration_s=duration_s, initial_idle_s=(idle_min or 0.0) * 60.0, segments=tuple(segments),
-                    room=room, noise_um=noise_um, effects=effects, variant=variant)
+                    room=room, noise_um=noise_um, effects=effects, start_time_s=start_time, variant=variant)
 
 
 def _named_tables(root: Table, key: str) -> list[tuple[str, Table]]:
