@@ -53,6 +53,24 @@ def checksum(text: str) -> str:
     return f"{sum(text.encode('ascii')) % 256:02X}"
 
 
+def parse_answer(answer: bytes, *, with_checksum: bool) -> list[tuple[str, float]] | None:
+    """The readings in a module's answer to ``#AA`` (its bytes before the CR); ``None`` when malformed.
+
+    Each reading is ``(text, value)``: a sign and digits (``+05.123``). A wrong checksum, any other character
+    or a reading too long to be a finite number makes the whole answer malformed.
+    """
+    if with_checksum:
+        body, given = answer[:-2], answer[-2:]
+        if len(answer) < 3 or given.upper() != f"{sum(body) % 256:02X}".encode("ascii"):
+            return None
+        answer = body
+    match = _ANSWER.fullmatch(answer.decode("ascii", "replace"))
+    if match is None:
+        return None
+    readings = [(v, float(v)) for v in _VALUE.findall(match.group(1))]
+    return readings if all(math.isfinite(x) for _, x in readings) else None
+
+
 @dataclass(frozen=True, kw_only=True, slots=True)
 class DconOptions(DeviceOptions):
     """A DCON line: its serial port and format."""
@@ -178,15 +196,7 @@ class DconDriver(Driver):
             raise DeviceTimeout(f'device "{self.name}" (DCON {self.options.port}): module {module:02X} did not '
                                 f"answer {command!r} within {self.options.timeout_s:g} s"
                                 + (f" (got {answer!r})" if answer else ""))
-        text = answer[:-1].decode("ascii", "replace")
-        if self.options.checksum:
-            body, given = text[:-2], text[-2:]
-            if len(text) < 3 or given.upper() != checksum(body):
-                self.bad_answers += 1
-                return None
-            text = body
-        match = _ANSWER.fullmatch(text)
-        if match is None:
+        readings = parse_answer(answer[:-1], with_checksum=self.options.checksum)
+        if readings is None:
             self.bad_answers += 1
-            return None
-        return [(v, float(v)) for v in _VALUE.findall(match.group(1))]
+        return readings

@@ -191,7 +191,17 @@ def read_recording(
     ``time_column=None`` means the file has no time column and rows are ``period_s`` apart. Missing
     displacement columns are an error only when ``require_displacement``.
     """
-    path = Path(path)
+    try:
+        return _read_recording(Path(path), factor_columns=factor_columns, displacement_columns=displacement_columns,
+                               time_column=time_column, period_s=period_s,
+                               require_displacement=require_displacement, text=text)
+    except RecordingError as exc:  # one line, whatever a column name or a cell holds
+        raise RecordingError(_clip(str(exc), 1000)) from None
+
+
+def _read_recording(path: Path, *, factor_columns: Mapping[str, str], displacement_columns: Mapping[str, str],
+                    time_column: str | None, period_s: float, require_displacement: bool,
+                    text: str | None) -> Recording:
     if not MIN_PERIOD_S <= period_s <= MAX_PERIOD_S:
         raise RecordingError(f"{path}: the row period must be from {MIN_PERIOD_S:g} s to {MAX_PERIOD_S:g} s (a day), "
                              f"got {period_s!r}")
@@ -373,8 +383,9 @@ def _csv_rows(text: str, path: Path) -> Iterable[tuple[int, list[str]]]:
 
 
 def _clip(cell: str, width: int = 40) -> str:
-    """A cell for a message: long ones shortened."""
-    return cell if len(cell) <= width else f"{cell[:width]}... ({len(cell)} characters)"
+    """A cell for a message: long ones shortened, control characters (a quoted line break) escaped."""
+    shown = cell if len(cell) <= width else f"{cell[:width]}... ({len(cell)} characters)"
+    return re.sub(r"[\x00-\x1f\x7f]", lambda m: repr(m.group())[1:-1], shown)
 
 
 def read_for_profile(path: str | Path, profile: Profile, *, period_s: float | None = None,

@@ -21,6 +21,7 @@ from gateway.errors import GatewayError, did_you_mean, expected_one_of
 _MISSING: Any = object()
 _HEADER = re.compile(r"^\s*\[\[?\s*([^\]]+?)\s*\]\]?\s*(#.*)?$")
 _KEYLINE = re.compile(r"^\s*([A-Za-z0-9_\-\"'. ]+?)\s*=")
+_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
 _INLINE_KEY = re.compile(r"(?:^|[{,])\s*([A-Za-z0-9_\-]+)\s*=")
 
 
@@ -42,11 +43,12 @@ def describe(value: Any) -> str:
     """Show a value the way the user wrote it, with its TOML type."""
     kind = {bool: "a boolean", int: "an integer", float: "a number", str: "a string",
             list: "an array", dict: "a table"}.get(type(value), type(value).__name__)
-    if isinstance(value, str):
-        return f'"{value}" ({kind})'
     if isinstance(value, dict):
         return "a table"
-    return f"{value!r} ({kind})"
+    shown = f'"{value}"' if isinstance(value, str) else repr(value)
+    if len(shown) > 80:  # a 4000-digit integer or a 100 kB string: its start and its size say enough
+        shown = f"{shown[:40]}... ({len(shown)} characters)"
+    return f"{shown} ({kind})"
 
 
 class TomlDoc:
@@ -137,7 +139,8 @@ class TomlDoc:
         return f"{loc}: {'.'.join(path)}" if path else loc
 
     def problem(self, path: Sequence[str], message: str) -> None:
-        self.problems.append(f"{self.where(path)}: {message}")
+        # one line per problem, whatever a value or a quoted key holds (a multi-line string, a NUL)
+        self.problems.append(_CONTROL.sub(lambda m: repr(m.group())[1:-1], f"{self.where(path)}: {message}"))
 
     def raise_problems(self) -> None:
         if self.problems:
@@ -207,7 +210,7 @@ class Table:
         value = self._get(key, default, expected)
         if value is _MISSING:
             return default if default is not _MISSING else None
-        if isinstance(value, bool) or not isinstance(value, int | float):
+        if isinstance(value, bool) or not isinstance(value, int | float) or not _fits_float(value):
             self._bad(key, value, expected)
             return None
         number = float(value)
@@ -275,7 +278,8 @@ class Table:
         if value is _MISSING:
             return default if default is not _MISSING else None
         if not isinstance(value, list) or not all(
-            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in value
+            isinstance(v, int | float) and not isinstance(v, bool) and _fits_float(v) and math.isfinite(v)
+            for v in value
         ):
             self._bad(key, value, expected)
             return None
@@ -325,6 +329,11 @@ class Table:
                     f" (expected one of: {', '.join(known)})" if known else " (this table takes no keys)"
                 )
                 self.problem(key, f"unknown key{hint}")
+
+
+def _fits_float(value: int | float) -> bool:
+    """Whether a TOML number converts to a float (an integer beyond 1.8e308 does not)."""
+    return isinstance(value, float) or abs(value) < 2**1024
 
 
 def _bounds_text(lo: float | None, hi: float | None, lo_exclusive: bool) -> str:
