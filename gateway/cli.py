@@ -14,7 +14,7 @@ import sys
 from collections.abc import Sequence
 
 from gateway import __version__
-from gateway.errors import GatewayError
+from gateway.errors import GatewayError, exit_codes_text
 
 #: command modules, in the order ``cncgw --help`` lists them
 COMMAND_MODULES = (
@@ -35,6 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cncgw",
         description="Estimate and compensate CNC machine-tool thermal deformation from CNC signals.",
+        epilog=exit_codes_text() + "\n\ncncgw COMMAND --help: each command's options.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"cncgw {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")

@@ -17,6 +17,12 @@ class GatewayError(Exception):
     exit_code = 1
 
 
+class UsageError(GatewayError):
+    """A command-line argument that argparse cannot check by itself (a range, a combination)."""
+
+    exit_code = 2
+
+
 class ProfileError(GatewayError):
     """A machine profile is invalid.
 
@@ -69,6 +75,29 @@ class CompensationError(GatewayError):
     """A compensation value could not be written safely."""
 
     exit_code = 9
+
+
+#: what ``cncgw`` exits with; ``cncgw --help`` and the README show this table
+EXIT_CODES: tuple[tuple[int, str], ...] = (
+    (0, "success"),
+    (1, "failed for another reason (an output exists without --force, a server cannot start, ...)"),
+    (2, "usage: an unknown command or option, a bad argument value"),
+    (3, "bad profile (every problem listed with file:line, key, value, expected)"),
+    (4, "bad recording (file, line and column named)"),
+    (5, "bad model file, or a model that does not fit the profile"),
+    (6, "identification cannot proceed"),
+    (7, "simulation: a bad scenario"),
+    (8, "a device failed or did not answer (driver, device and channel named)"),
+    (9, "compensation could not be written safely to the CNC"),
+    (10, "diagnosis cannot proceed"),
+    (130, "interrupted (Ctrl-C)"),
+    (141, "output pipe closed (e.g. | head)"),
+)
+
+
+def exit_codes_text() -> str:
+    """The exit-code table as plain text, for ``cncgw --help``."""
+    return "exit codes:\n" + "\n".join(f"  {code:>3}  {meaning}" for code, meaning in EXIT_CODES)
 
 
 def did_you_mean(word: str, choices: Iterable[str]) -> str:

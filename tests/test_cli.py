@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -11,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gateway.cli import main
+from gateway.cli import build_parser, main
+from gateway.errors import EXIT_CODES, GatewayError
 from gateway.estimate import estimate
 from gateway.model import FirstOrder, PathTF, SecondOrder, ThermalModel, load_model, save_model
 from gateway.profile import load_profile
@@ -180,3 +183,47 @@ def test_estimate_with_an_absurd_model_is_an_error_not_a_memory_error(workdir, c
     assert "late.toml:" in err
     assert "delay_s: expected a dead time from 0 to 86400 s (1 day), got 1000000000000.0" in err
     assert "Traceback" not in err
+
+
+def _all_parsers(parser):
+    yield parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                yield from _all_parsers(sub)
+
+
+def test_help_texts_show_no_rest_markup():
+    parsers = list(_all_parsers(build_parser()))
+    assert len(parsers) > 15
+    for p in parsers:
+        text = p.format_help()
+        assert "`" not in text, f"{p.prog}: {[line for line in text.splitlines() if '`' in line]}"
+        assert ":mod:" not in text, p.prog
+
+
+def _error_classes(cls=GatewayError):
+    for sub in cls.__subclasses__():
+        yield sub
+        yield from _error_classes(sub)
+
+
+def test_every_exit_code_is_in_help_and_readme_and_every_error_has_one():
+    build_parser()  # imports every command module, and so every error class
+    codes = dict(EXIT_CODES)
+    assert {GatewayError.exit_code, *(c.exit_code for c in _error_classes())} <= set(codes)
+    epilog = build_parser().format_help()
+    for code, meaning in EXIT_CODES:
+        assert f"{code:>3}  {meaning}" in epilog
+    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    table = readme[readme.index("## Exit codes"):readme.index("## Layout")]
+    rows = {int(m[0]): m[1].replace("\\|", "|") for m in re.findall(r"^\| (\d+) \| (.+?) \|$", table, re.M)}
+    assert rows == codes
+
+
+def test_a_bad_argument_value_found_after_parsing_is_a_usage_error(workdir, capsys):
+    from tests_paths import PROFILES
+
+    assert main(["run", "--profile", str(PROFILES / "sim-vmc.toml"), "--data", "d", "--rt-priority", "200"]) == 2
+    assert capsys.readouterr().err == "cncgw: error: --rt-priority must be in 0..99. Got 200\n"
+    assert not Path("d").exists()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -10,6 +11,12 @@ from gateway.errors import GatewayError, ModelError
 from gateway.model import ThermalModel, load_model
 from gateway.profile import Profile
 from gateway.recording import Recording, read_for_profile
+
+
+def plain(doc: str | None) -> str:
+    """A docstring as argparse should show it: reST markup (``code``, `ref`, :mod:`x`) as plain text."""
+    text = re.sub(r":[a-z]+:`~?([^`]+)`", r"\1", doc or "")
+    return re.sub(r"``([^`]+)``|`([^`]+)`", lambda m: m.group(1) or m.group(2), text)
 
 
 def positive_float(text: str) -> float:

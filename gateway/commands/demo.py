@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 from gateway import BUNDLED
-from gateway.commands._common import positive_float
+from gateway.commands._common import plain, positive_float
 from gateway.identify import identify
 from gateway.model import save_model
 from gateway.profile import load_profile
@@ -38,7 +38,7 @@ VALIDATION = "spindle-feeds"
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Add ``cncgw demo``."""
     p = sub.add_parser("demo", help="the workflow end to end on the bundled simulated machine, closed loop",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+                       description=plain(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("-o", "--out", default="demo-out", metavar="DIR",
                    help="where the recordings, the model, the records, the audit log and the plot go "
                         "(default: demo-out)")

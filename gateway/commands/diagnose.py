@@ -17,7 +17,7 @@ from gateway.commands._common import (
     positive_int,
     read_recordings,
 )
-from gateway.errors import GatewayError
+from gateway.errors import GatewayError, UsageError
 from gateway.model.inputs import hold_missing
 from gateway.profile import load_profile
 from gateway.recording import Recording
@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     if args.split_by:
         recs = [part for r in recs for part in split_by(r, args.split_by)]
     if args.blocks < 3:
-        raise GatewayError(f"--blocks: expected at least 3 held-out blocks, got {args.blocks}")
+        raise UsageError(f"--blocks: expected at least 3 held-out blocks, got {args.blocks}")
     options = Options(alpha=args.alpha, min_effect_share=args.min_effect, min_gain=args.min_gain, blocks=args.blocks)
     out = Path(args.output) if args.output else None
     if out is not None and (out / "report.md").exists() and not args.force:

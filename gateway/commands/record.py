@@ -18,7 +18,7 @@ from pathlib import Path
 
 from gateway.clock import Clock, RealClock, ScaledClock
 from gateway.commands._common import positive_float
-from gateway.errors import GatewayError
+from gateway.errors import GatewayError, UsageError
 from gateway.profile import load_profile
 from gateway.records import STORE_NAME, RecordStore, export_recording
 from gateway.windows import WindowRecord, window_index
@@ -96,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
         if threading.current_thread() is threading.main_thread():
             previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
         if not 0 <= args.rt_priority <= 99:
-            raise GatewayError(f"--rt-priority must be in 0..99. Got {args.rt_priority}")
+            raise UsageError(f"--rt-priority must be in 0..99. Got {args.rt_priority}")
         acq = Acquisition(profile, clock=clock, sinks=[store, report], spin_s=args.spin_us * 1e-6,
                           rt_priority=args.rt_priority)
         print(f"recording {profile.name} from {len(acq.samplers)} device(s) into {store.path}"

@@ -18,8 +18,8 @@ from pathlib import Path
 from typing import Any
 
 from gateway.clock import Clock, RealClock, ScaledClock
-from gateway.commands._common import load_model_for, positive_float
-from gateway.errors import GatewayError, ModelError, ProfileError
+from gateway.commands._common import load_model_for, plain, positive_float
+from gateway.errors import GatewayError, ModelError, ProfileError, UsageError
 from gateway.profile import load_profile
 
 log = logging.getLogger("gateway.live")
@@ -44,7 +44,7 @@ class JsonFormatter(logging.Formatter):
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Add ``cncgw run``."""
     p = sub.add_parser("run", help="run the live gateway: sample, estimate, compensate, serve OPC UA",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+                       description=plain(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--profile", required=True, metavar="PROFILE", help="machine profile (TOML) with devices")
     p.add_argument("--data", required=True, metavar="DIR",
                    help="directory of records.sqlite and audit.sqlite (e.g. /var/lib/cncgw/MACHINE)")
@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     if not profile.devices:
         raise GatewayError(f"{profile.path}: no [devices] to sample (this is an offline profile)")
     if not 0 <= args.rt_priority <= 99:
-        raise GatewayError(f"--rt-priority must be in 0..99. Got {args.rt_priority}")
+        raise UsageError(f"--rt-priority must be in 0..99. Got {args.rt_priority}")
     model, model_path = load_model_for(profile, args.model)
     from gateway.live.estimator import column_channel_problems, retention_problems
     from gateway.live.plausibility import model_refusals

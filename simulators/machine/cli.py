@@ -22,7 +22,7 @@ def add_actions(actions: argparse._SubParsersAction) -> None:
     rec.add_argument("--seed", type=int, default=None, help="sensor-noise seed instead of the scenario's")
     rec.add_argument("--variant", type=int, default=None, metavar="N",
                      help="plant variant instead of the scenario's [plant] variant: 0 the nominal machine, N > 0 "
-                          "its gains and time constants perturbed by seed N (+-30 %%; `simulate list --variant N` "
+                          "its gains and time constants perturbed by seed N (+-30 %%; cncgw simulate list --variant N "
                           "shows them)")
     rec.add_argument("--no-progress", action="store_true", help="no progress bar")
     rec.set_defaults(func=run_record)
