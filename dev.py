@@ -4,10 +4,14 @@
     python3 dev.py demo     the main job: the demo against the bundled simulators
     python3 dev.py test     the whole test suite (ruff, then pytest; then the numeric tests again
                             under another OpenBLAS kernel, as on another CPU)
+    python3 dev.py lock     re-resolve constraints.txt to the newest versions pyproject.toml allows
+                            (pip-tools, in .venv-lock); ``lock -P numpy`` upgrades one package only
 
 Only a Python >= 3.11 is needed. The first run creates ``.venv`` beside this file and installs the
-package with its test extras; later runs reinstall only when ``pyproject.toml`` changes. Extra
-arguments are passed on (``python3 dev.py test -k profile``, ``python3 dev.py demo --help``).
+package with its test extras, every version pinned by ``constraints.txt`` (the lock: the same numpy,
+scipy, pymodbus, asyncua on every machine; the wheel itself keeps the ranges in pyproject.toml); later
+runs reinstall only when ``pyproject.toml`` or ``constraints.txt`` changes. Extra arguments are passed
+on (``python3 dev.py test -k profile``, ``python3 dev.py demo --help``).
 """
 
 from __future__ import annotations
@@ -24,6 +28,9 @@ VENV = ROOT / ".venv"
 BIN = VENV / ("Scripts" if os.name == "nt" else "bin")
 PY = BIN / ("python.exe" if os.name == "nt" else "python")
 STAMP = VENV / ".cncgw-installed"
+LOCK = ROOT / "constraints.txt"
+#: a virtualenv of its own for pip-tools: the lock is written by a tool the tests never see
+LOCK_VENV = ROOT / ".venv-lock"
 #: the OpenBLAS kernel the numeric tests run under a second time (an old x86-64 one: no AVX, other sums)
 OTHER_KERNEL = "Prescott"
 
@@ -31,7 +38,7 @@ OTHER_KERNEL = "Prescott"
 def _ensure_venv() -> None:
     if sys.version_info < (3, 11):
         sys.exit(f"dev.py: Python >= 3.11 is needed, this is {sys.version.split()[0]}")
-    want = hashlib.sha256((ROOT / "pyproject.toml").read_bytes()).hexdigest()
+    want = hashlib.sha256((ROOT / "pyproject.toml").read_bytes() + LOCK.read_bytes()).hexdigest()
     if PY.exists() and STAMP.exists() and STAMP.read_text().strip() == want:
         return
     if not PY.exists():
@@ -39,15 +46,32 @@ def _ensure_venv() -> None:
         venv.EnvBuilder(with_pip=True).create(VENV)
     print("dev.py: installing cncgw and its test tools into .venv", flush=True)
     subprocess.run([str(PY), "-m", "pip", "install", "--quiet", "--upgrade", "pip"], check=True)
-    subprocess.run([str(PY), "-m", "pip", "install", "--quiet", "-e", f"{ROOT}[test]"], check=True)
+    subprocess.run([str(PY), "-m", "pip", "install", "--quiet", "-c", str(LOCK), "-e", f"{ROOT}[test]"], check=True)
     STAMP.write_text(want)
 
 
+def _lock(rest: list[str]) -> int:
+    """Rewrite constraints.txt with pip-compile: every package at the newest version the ranges allow."""
+    bin_dir = LOCK_VENV / ("Scripts" if os.name == "nt" else "bin")
+    py = bin_dir / ("python.exe" if os.name == "nt" else "python")
+    if not py.exists():
+        print(f"dev.py: creating {LOCK_VENV} for pip-tools", flush=True)
+        venv.EnvBuilder(with_pip=True).create(LOCK_VENV)
+        subprocess.run([str(py), "-m", "pip", "install", "--quiet", "pip-tools>=7.4"], check=True)
+    one = any(a in ("-P", "--upgrade-package") or a.startswith("--upgrade-package=") for a in rest)
+    return subprocess.call([str(py), "-m", "piptools", "compile", "--quiet", *([] if one else ["--upgrade"]),
+                            "--extra", "test", "--strip-extras", "--no-emit-index-url", "--no-emit-find-links",
+                            "--output-file", LOCK.name, "pyproject.toml", *rest], cwd=ROOT,
+                           env={**os.environ, "CUSTOM_COMPILE_COMMAND": "python3 dev.py lock"})
+
+
 def main(argv: list[str]) -> int:
-    if not argv or argv[0] not in {"demo", "test"}:
+    if not argv or argv[0] not in {"demo", "test", "lock"}:
         print(__doc__.strip())
         return 2
     job, rest = argv[0], argv[1:]
+    if job == "lock":
+        return _lock(rest)
     _ensure_venv()
     os.chdir(ROOT)
     if job == "demo":
