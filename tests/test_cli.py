@@ -227,3 +227,11 @@ def test_a_bad_argument_value_found_after_parsing_is_a_usage_error(workdir, caps
     assert main(["run", "--profile", str(PROFILES / "sim-vmc.toml"), "--data", "d", "--rt-priority", "200"]) == 2
     assert capsys.readouterr().err == "cncgw: error: --rt-priority must be in 0..99. Got 200\n"
     assert not Path("d").exists()
+
+
+def test_identify_on_fewer_windows_than_parameters_says_so(workdir, capsys):
+    write(Path("short.csv"), [(2, {}), (2, {"speed": 1000, "i_sq": 40})], 4)  # found by bench/fuzz.py: an IndexError
+    assert main(["identify", "--profile", "lathe.toml", "short.csv", "-o", "short.model.toml"]) == 6
+    err = capsys.readouterr().err
+    assert err.startswith("cncgw: error: axis x: 4 windows with measured displacement cannot fix the 5 parameters of "
+                          "the simplest structure (first_order, 2 paths, 1 experiment offsets): expected at least 6")

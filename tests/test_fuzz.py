@@ -31,7 +31,7 @@ from drivers.modbus_common import DATA_TYPES, RegisterAddress
 from drivers.modbus_tcp import ModbusTcpDriver, ModbusTcpOptions
 from gateway.errors import DriverError, GatewayError, ModelError, ProfileError, RecordingError
 from gateway.estimate import estimate
-from gateway.model import load_model
+from gateway.model import load_model, save_model
 from gateway.profile import load_profile
 from gateway.recording import MAX_ABS_VALUE, MAX_MISSING_WINDOWS, read_for_profile, read_recording
 
@@ -126,6 +126,25 @@ def test_estimate_of_any_readable_recording_is_finite_or_one_error(rng, model_na
     assert np.all(np.isfinite(result.estimated))
     for m in result.metrics.values():
         assert math.isfinite(m.rms_um) or m.windows == 0
+
+
+@settings(FUZZ, max_examples=40)
+@given(rng=SEEDS)
+def test_identify_on_any_readable_recording_writes_a_loadable_model_or_is_one_error(rng, tmp_path_factory,
+                                                                                    memory_bound):
+    from gateway.identify.api import identify
+
+    profile = load_profile(SIM_PROFILE)
+    folder = tmp_path_factory.mktemp("ident")
+    (folder / "r.csv").write_text(recording_text(rng))
+    try:
+        model = identify([read_for_profile(folder / "r.csv", profile)], factors=profile.factor_names,
+                         axes=profile.axes, units={f.name: f.unit for f in profile.factors}, machine=profile.name).model
+    except GatewayError as err:
+        assert_names(err, "")  # identification names the axis, the reader the file
+        return
+    save_model(model, folder / "m.toml")
+    assert load_model(folder / "m.toml") == model  # what identification writes is inside the loader's ranges
 
 
 # ------------------------------------------------------------------------------------------- decoders --

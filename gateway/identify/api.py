@@ -17,7 +17,7 @@ from gateway.identify.common import ExperimentSet
 from gateway.identify.joint import CANDIDATES, AxisSelection, select_axis
 from gateway.identify.paper import active_factors, describe_groups, identify_paper
 from gateway.model.envelope import envelope_of
-from gateway.model.model import ThermalModel
+from gateway.model.model import ThermalModel, model_problems
 from gateway.prepare import prepare
 from gateway.recording import Recording
 
@@ -140,6 +140,11 @@ def _identify(
     envelope = envelope_of(model, ((p.du, p.y) for p in preps), window_s=es.dt_s,
                            source=f"identification: {len(preps)} experiments")
     model = replace(model, envelope=envelope)
+    problems = model_problems(model)
+    if problems:  # e.g. a factor that barely moves in the experiments: a gain of millions of um per unit
+        raise IdentificationError(
+            "the identified model is outside the ranges a model file may hold, so the experiments do not "
+            "determine it (a factor that barely moves? units far from the usual?):\n" + "\n".join(problems))
     return IdentifyResult(model=model, method=method, experiments=es.names, wall_s=time.perf_counter() - t0,
                           report=report, selections=selections, notes=notes)
 

@@ -417,6 +417,16 @@ def select_axis(es: ExperimentSet, axis_index: int, *, active: Sequence[bool],
     """Fit every candidate structure on one axis, choose by :func:`bic`, then prune weak paths."""
     t0 = time.perf_counter()
     problem = AxisProblem(es, axis_index)
+    # a structure with as many parameters as windows fits anything (and its least squares is underdetermined)
+    offsets = int(np.count_nonzero(problem._counts))
+    need = {c: sum(n_nonlinear(c) + n_linear(c) for on in active if on) + offsets + 1 for c in candidates}
+    candidates = [c for c in candidates if need[c] <= problem.n]
+    if not candidates:
+        simplest = min(need, key=need.get)
+        raise IdentificationError(
+            f"axis {es.axes[axis_index]}: {problem.n} windows with measured displacement cannot fix the "
+            f"{need[simplest] - 1} parameters of the simplest structure ({simplest}, {sum(active)} paths, "
+            f"{offsets} experiment offsets): expected at least {need[simplest]}; record longer experiments")
     starts = bank_start(problem, active)
     tried: dict[str, AxisFit] = {}
     for cand in sorted(candidates, key=FIT_ORDER.index):

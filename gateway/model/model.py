@@ -9,6 +9,7 @@ motor's holding current squared on a vertical machine.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -368,12 +369,33 @@ def model_to_toml(model: ThermalModel) -> str:
 
 
 def save_model(model: ThermalModel, path: str | Path) -> Path:
-    """Write the model file atomically."""
+    """Write the model file atomically; a model :func:`load_model` would refuse is not written (ModelError)."""
     path = Path(path)
+    problems = model_problems(model)
+    if problems:
+        raise ModelError("\n".join(f"{path}: not written: {p}" for p in problems))
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(model_to_toml(model), encoding="utf-8")
     tmp.replace(path)
     return path
+
+
+def model_problems(model: ThermalModel) -> list[str]:
+    """What loading this model's file would refuse (nothing: it loads), with paths named ``axis/factor``.
+
+    Every writer checks this, so a model file on disk always loads again: identification on experiments that
+    barely move a factor can find a gain beyond the physical range (:mod:`gateway.model.limits`).
+    """
+    try:
+        load_model("model", text=model_to_toml(model))
+    except ModelError as exc:
+        order = [f"{a}/{f}" for a in model.axes for f in model.input_names]
+        out = []
+        for line in str(exc).splitlines():
+            body = re.sub(r"^model(:\d+)?: ", "", line)
+            out.append(re.sub(r"^path\.(\d+)", lambda m: f"path {order[int(m.group(1)) - 1]}", body))
+        return out
+    return []
 
 
 def load_model(path: str | Path, *, text: str | None = None) -> ThermalModel:
