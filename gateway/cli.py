@@ -30,8 +30,16 @@ COMMAND_MODULES = (
 )
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``cncgw`` parser with every command module's sub-parser."""
+def _command_name(module: str) -> str:
+    return "simulate" if module == "simulators.cli" else module.rsplit(".", 1)[1]
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``cncgw`` parser with every command module's sub-parser, or only ``command``'s.
+
+    Only the command being run is imported: ``cncgw run`` must not pay for identification's scipy
+    imports (2-3 s on a busy edge PC) before its first heartbeat reaches the CNC.
+    """
     parser = argparse.ArgumentParser(
         prog="cncgw",
         description="Estimate and compensate CNC machine-tool thermal deformation from CNC signals.",
@@ -42,13 +50,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
-        importlib.import_module(name).add_parser(sub)
+        if command is None or _command_name(name) == command:
+            importlib.import_module(name).add_parser(sub)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``cncgw`` with ``argv``; return the exit status."""
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    first = next((a for a in argv if not a.startswith("-")), None)  # the top level's options take no value
+    known = {_command_name(m) for m in COMMAND_MODULES}
+    parser = build_parser(first if first in known else None)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],

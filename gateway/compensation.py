@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -100,7 +101,8 @@ class CompensationWriter:
         self.commanded_um: dict[str, float] = dict.fromkeys(self.axes, 0.0)  # what the CNC applies, as far as known
         self.synced = False
         self.cnc_state: CncState | None = None
-        self._beat = 0
+        # a restarted gateway's first beat must differ from the last one its predecessor left in the register
+        self._beat = int.from_bytes(os.urandom(2), "big")
         self._next_beat_s = -math.inf
         self._next_connect_wall = 0.0
         self._inputs_from_s: float | None = None  # set by expect_inputs(): no staleness before inputs are due
@@ -115,6 +117,10 @@ class CompensationWriter:
         self.latencies_s: list[float] = []  # window close (update received) -> verified write, wall seconds
         self._received_wall: float | None = None
         self.hold_requested = False
+        #: the thread's CPU time and wall span, known once it stopped (benchmarks)
+        self.cpu_s = 0.0
+        self.started_wall: float | None = None
+        self.stopped_wall: float | None = None
         self._unresolved: WriteEntry | None = None  # a write whose outcome is unknown (no answer in time)
         self._audited_counts: dict[str, int] | None = None  # the CNC's applied offsets as last audited
 
@@ -169,13 +175,18 @@ class CompensationWriter:
         self.synced = False
 
     def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                self.service()
-            except Exception:  # a bug in one cycle must not stop the heartbeat for good
-                log.exception("compensation writer: cycle failed")
-            self._wake.wait(self._idle_wall_s())
-            self._wake.clear()
+        self.started_wall = time.monotonic()
+        try:
+            while not self._stop.is_set():
+                try:
+                    self.service()
+                except Exception:  # a bug in one cycle must not stop the heartbeat for good
+                    log.exception("compensation writer: cycle failed")
+                self._wake.wait(self._idle_wall_s())
+                self._wake.clear()
+        finally:
+            self.stopped_wall = time.monotonic()
+            self.cpu_s = time.thread_time()
 
     def _idle_wall_s(self) -> float:
         """Wall seconds the thread may sleep before :meth:`service` has something to do (an update wakes it).

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import subprocess
+import sys
 import threading
 
 import pytest
@@ -242,3 +244,25 @@ def test_pruning_in_batches_lets_windows_be_appended_meanwhile(tmp_path):
         assert store.first_index() == 2900
         assert len(store) == 140
         assert [r.index for r in store.windows()][:3] == [2900, 2901, 2902]
+
+
+def test_a_restart_beats_before_it_replays_the_history_and_run_imports_no_identification(tmp_path):
+    rig = Rig(tmp_path, name="order")
+    try:
+        data = tmp_path / "data"
+        with rig.gateway(data) as gw:
+            gw.run_stepped(10 * 60)
+        rig.clock.advance(2.0)
+        with rig.gateway(data) as gw:
+            assert gw.estimator.rebuilt_windows >= 9
+        _, events = audited(data)
+        second = [(k, n) for _, k, n, _ in events][[k for _, k, _, _ in events].index("stop") + 1:]
+        assert second.index(("sync", "cnc")) < second.index(("rebuild", "estimator"))  # the CNC hears it first
+    finally:
+        rig.close()
+    # `cncgw run` builds its own parser only: identification's scipy is not imported before the first beat
+    code = ("import sys; from gateway.cli import build_parser; build_parser('run'); "
+            "import gateway.commands.run, gateway.live.runtime, gateway.compensation; "
+            "print(sorted(m for m in ('scipy', 'gateway.identify', 'asyncua') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"

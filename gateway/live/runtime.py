@@ -12,9 +12,10 @@ on: the offsets stay where they are, and the estimator later fills it by the gap
 restart would, since the store does not have it either. Whatever the CNC was given can be recomputed from
 the store after a crash.
 
-Start order (Telegraf's agent): consumers before producers: the store and the audit log, the estimator
-(rebuilt from the stored history), the compensation writer (its thread connects to the CNC and starts the
-heartbeat), the OPC UA server, then the acquisition (window closer, then one sampler thread per device).
+Start order (Telegraf's agent): consumers before producers: the store and the audit log, the compensation
+writer (its thread connects to the CNC and starts the heartbeat, holding the offsets the CNC applies), the
+estimator (rebuilt from the stored history while the writer already beats), the OPC UA server, then the
+acquisition (window closer, then one sampler thread per device).
 Stop order is the reverse: producers first, so no window is handed to a stopped consumer.
 """
 
@@ -139,6 +140,16 @@ class LiveGateway:
             log.warning("the model has no plausibility envelope: a dry run bounds its estimates by limit_um; "
                         "writing to the CNC will refuse it (re-run cncgw identify)")
 
+        # the writer first: it synchronises with the CNC and beats while the history is replayed, so a restart
+        # reaches the CNC's watchdog as fast as the process starts, whatever the length of the history
+        self.writer = CompensationWriter(p.compensation, clock=self.clock, window_s=p.sampling.window_s,
+                                         stale_after_s=p.live.stale_after_s, alarms=self.alarms, audit=self.audit,
+                                         link_factory=self._link_factory, plausibility=self.plausibility)
+        if not self.stepped:
+            self.writer.start()
+        else:
+            self.writer.service()
+
         self.estimator = Estimator(self.model, window_s=p.sampling.window_s, live=p.live,
                                    channels={f.name: f.channel for f in p.factors},
                                    channel_names=[c.name for c in p.channels])
@@ -153,14 +164,6 @@ class LiveGateway:
             for g in gaps[-3:]:
                 self.audit.event(now, "gap", "history", g.describe(p.sampling.window_s))
             self.audit.event(now, "rebuild", "estimator", f"{n} windows replayed up to window {self.store.last_index}")
-
-        self.writer = CompensationWriter(p.compensation, clock=self.clock, window_s=p.sampling.window_s,
-                                         stale_after_s=p.live.stale_after_s, alarms=self.alarms, audit=self.audit,
-                                         link_factory=self._link_factory, plausibility=self.plausibility)
-        if not self.stepped:
-            self.writer.start()
-        else:
-            self.writer.service()
 
         if self.serve_opcua:
             from gateway.opcua import OpcUaServer

@@ -21,8 +21,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
-import scipy.signal
+
+# scipy is imported where it is used: importing scipy.signal takes 2-3 s on a busy edge PC, and `cncgw run`
+# must reach the CNC's heartbeat watchdog before that matters (see gateway.live.runtime)
 
 
 def split_delay(delay_s: float, dt_s: float) -> tuple[int, float]:
@@ -57,7 +58,9 @@ def _gamma(A: np.ndarray, B: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarr
     M = np.zeros((n + 1, n + 1))
     M[:n, :n] = A * t
     M[:n, n] = B * t
-    E = scipy.linalg.expm(M)
+    from scipy.linalg import expm
+
+    E = expm(M)
     return E[:n, :n], E[:n, n]
 
 
@@ -103,10 +106,14 @@ class Section:
 
     def filter(self, u: np.ndarray) -> np.ndarray:
         """Unit-gain response to ``u`` (last axis is time), starting from rest."""
-        return scipy.signal.lfilter(self.num, self.den, u, axis=-1)
+        from scipy.signal import lfilter
+
+        return lfilter(self.num, self.den, u, axis=-1)
 
     def final_state(self, u: np.ndarray) -> np.ndarray:
         """State x_N after the input history ``u`` (1-D), from rest: same recursion, vectorised."""
+        from scipy.signal import lfilter
+
         n = self.order
         adj = np.eye(1) if n == 1 else np.array([[self.Ad[1, 1], -self.Ad[0, 1]],
                                                   [-self.Ad[1, 0], self.Ad[0, 0]]])
@@ -119,7 +126,7 @@ class Section:
             else:
                 num = np.array([e @ self.B0, e @ self.B1 - e @ adj @ self.B0, -(e @ adj @ self.B1)])
             num = np.concatenate([np.zeros(self.m), num])
-            x[i] = scipy.signal.lfilter(num, self.den, u)[-1] if len(u) else 0.0
+            x[i] = lfilter(num, self.den, u)[-1] if len(u) else 0.0
         return x
 
     def steady_gain(self) -> float:

@@ -31,7 +31,6 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-import scipy.signal
 
 from gateway.model import limits
 from gateway.tomlcheck import NAME, Table
@@ -246,7 +245,9 @@ def _lag(x: np.ndarray, tau_s: float, dt_s: float, settled_at: float) -> np.ndar
     if tau_s == 0 or x.size == 0:
         return x
     a = lag_coefficient(tau_s, dt_s)
-    y, _ = scipy.signal.lfilter([1.0 - a], [1.0, -a], x, zi=[a * settled_at])
+    from scipy.signal import lfilter  # imported when used: it is slow to import (see gateway.model.discrete)
+
+    y, _ = lfilter([1.0 - a], [1.0, -a], x, zi=[a * settled_at])
     return y
 
 
