@@ -168,9 +168,13 @@ def parse_live(root: Table, window_s: float) -> Live:
     if t is None:
         return Live(stale_after_s=2.5 * window_s)
     policy = t.str("gap_policy", default="hold", choices=GAP_POLICIES)
-    hold = t.float("gap_hold_max_s", default=600.0, min=0.0)
-    stale = t.float("stale_after_s", default=2.5 * window_s, min=0.0, min_exclusive=True)
-    history = t.float("history_max_h", default=None, min=0.0, min_exclusive=True)
+    hold = t.float("gap_hold_max_s", default=600.0, min=0.0, max=7 * 86400.0,
+                   expected="a number of seconds from 0 to 604800 (7 days)")
+    stale = t.float("stale_after_s", default=2.5 * window_s, min=0.0, min_exclusive=True, max=86400.0,
+                    expected="a number of seconds > 0 and at most 86400 (a day)")
+    # the replayed history is kept in memory at start: a year of windows is the most that makes sense
+    history = t.float("history_max_h", default=None, min=0.0, min_exclusive=True, max=366 * 24.0,
+                      expected="a number of hours > 0 and at most 8784 (366 days)")
     t.done()
     if stale is not None and stale < window_s:
         t.problem("stale_after_s", f"expected at least one window ({window_s:g} s), got {stale:g}")
