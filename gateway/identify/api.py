@@ -143,8 +143,9 @@ def _identify(
     problems = model_problems(model)
     if problems:  # e.g. a factor that barely moves in the experiments: a gain of millions of um per unit
         raise IdentificationError(
-            "the identified model is outside the ranges a model file may hold, so the experiments do not "
-            "determine it (a factor that barely moves? units far from the usual?):\n" + "\n".join(problems))
+            "the identified model is outside the ranges a model file may hold: the experiments do not determine "
+            "it (factors that always change together, one that barely moves, or units far from the usual):\n"
+            + "\n".join(problems))
     return IdentifyResult(model=model, method=method, experiments=es.names, wall_s=time.perf_counter() - t0,
                           report=report, selections=selections, notes=notes)
 
