@@ -270,3 +270,13 @@ def test_first_order_fast_path_equals_the_general_section(delay_s):
     num, den = first_order_coefficients(700.0, 60.0, delay_s)
     np.testing.assert_allclose(num, sec.num, rtol=1e-13, atol=1e-16)
     np.testing.assert_allclose(den, sec.den, rtol=1e-13)
+
+
+def test_a_model_the_loader_would_refuse_is_never_written(tmp_path):
+    m = rich_model().with_paths([PathTF(axis="y", factor="i1_sq", terms=(FirstOrder(gain=9.5e6, tau_s=600.0),))])
+    with pytest.raises(ModelError) as err:
+        save_model(m, tmp_path / "m.toml")
+    assert str(err.value) == (f"{tmp_path / 'm.toml'}: not written: path y/i1_sq.term.1.gain: expected a static gain "
+                              "within +-1e+06 um per factor unit, got 9500000.0 (a number)")
+    assert not (tmp_path / "m.toml").exists()
+    assert not (tmp_path / "m.toml.tmp").exists()
