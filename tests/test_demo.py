@@ -24,8 +24,19 @@ def test_demo_runs_closed_loop_and_cuts_the_error(tmp_path, capsys):
         assert int(reduction) >= 70, (axis, reduction)
     assert float(rows[2][1]) > 19.0  # z peaks near 20 um at 2 h
     assert "every one applied as written" in out
+    assert "figures valid: 180 of 180 windows had their data" in out  # lock-step: whatever else the PC does
     model = load_model(tmp_path / "out" / "sim-vmc.model.toml")
     assert model.machine == "sim-vmc"
     assert len(list((tmp_path / "out" / "experiments").glob("*.truth.csv"))) == 9
     assert Path(tmp_path / "out" / "demo.png").read_bytes()[:4] == b"\x89PNG"
     assert (tmp_path / "out" / "live" / "records.sqlite").exists()
+
+
+def test_a_demo_whose_windows_lack_data_says_its_figures_are_invalid_and_why():
+    from gateway.commands.demo import _validity
+
+    line = _validity(367, 181, lockstep=False, speedup=480.0)
+    assert line.strip().startswith("FIGURES INVALID: 181 of 367 windows lacked their data")
+    assert "did not keep up with sampling every 2 ms of wall time at 480x" in line
+    assert "without --realtime" in line
+    assert _validity(461, 4, lockstep=False, speedup=480.0).strip().startswith("figures valid: 457 of 461")
