@@ -5,6 +5,13 @@ Bound to 127.0.0.1 unless ``[opcua] host`` says otherwise; security policies fro
 Every variable is read-only, except, when ``[opcua] writable = true``, ``Compensation.HoldRequest``: an
 operator (or a cell controller) can ask the writer to hold the offsets, which is always safe.
 
+Who may do what: an anonymous session (offered only with ``allow_anonymous``, by default only when every
+policy is ``"None"``) reads and is refused every write (``BadUserAccessDenied``); writing needs an
+authenticated session, the profile's ``username`` with the password in ``password_file`` (over an encrypted
+channel only), or a client certificate listed in ``user_certificates`` (an X509 user token, or the client's
+own certificate on a signed channel). A wrong password is refused at login; a certificate not listed gets
+no more than an anonymous session (refused too when anonymous sessions are off).
+
 Address space (namespace ``urn:cncgw``, string node ids, so a client can read ``ns=2;s=Estimate.z_um``):
 
 - ``Machine.Name``; ``Factors.<factor>`` (last window's factor, its unit in the description);
@@ -114,7 +121,7 @@ class OpcUaServer:
 
         self._loop = asyncio.get_running_loop()
         self._queue = asyncio.Queue()
-        server = Server()
+        server = Server(user_manager=await _Users.of(self.settings))
         async with asyncio.timeout(START_TIMEOUT_S):
             await server.init()
             server.set_endpoint(f"opc.tcp://{self.settings.host}:{self.settings.port}/cncgw/")
@@ -139,11 +146,16 @@ class OpcUaServer:
 
         s = self.settings
         policies = [getattr(ua.SecurityPolicyType, "NoSecurity" if p == "None" else p) for p in s.security]
-        server.set_security_policy(policies)
-        # anonymous reading; user certificates only where a signing policy can verify them
-        tokens = [ua.AnonymousIdentityToken] + ([ua.X509IdentityToken] if len(policies) > 1 or
-                                                policies[0] != ua.SecurityPolicyType.NoSecurity else [])
+        server.set_security_policy(policies, permission_ruleset=_anonymous_reads_only())
+        tokens = [ua.AnonymousIdentityToken] if s.allow_anonymous else []
+        if s.username is not None:
+            tokens.append(ua.UserNameIdentityToken)
+        if s.user_certificates and s.signing:  # a certificate token is verified by a signing policy
+            tokens.append(ua.X509IdentityToken)
         server.set_identity_tokens(tokens)
+        if s.writable and not (s.username or s.user_certificates):
+            log.warning("OPC UA: writable = true but no user is configured: nobody can write (anonymous sessions "
+                        "never do)")
         if s.certificate is not None and s.private_key is not None:
             await server.load_certificate(str(s.certificate))
             await server.load_private_key(str(s.private_key))
@@ -278,3 +290,72 @@ class OpcUaServer:
             node = self._nodes.get(key)
             if node is not None:
                 await node.write_value(ua.Variant(v, self._types[key]))
+
+
+def _anonymous_reads_only() -> Any:
+    """asyncua's request-level permissions: an anonymous session reads, browses and subscribes, never writes."""
+    from asyncua import ua
+    from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, UserRole
+
+    class AnonymousReadsOnly(PermissionRuleset):
+        def __init__(self) -> None:
+            user = {ua.NodeId(t) for t in USER_TYPES}
+            no = {ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary),
+                  ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)}
+            self._allowed = {UserRole.Admin: user, UserRole.User: user, UserRole.Anonymous: user - no}
+
+        def check_validity(self, user: Any, action_type_id: Any, body: Any) -> bool:
+            role = getattr(user, "role", UserRole.Anonymous)
+            return action_type_id in self._allowed.get(role, set())
+
+    return AnonymousReadsOnly()
+
+
+class _Users:
+    """asyncua's user manager for the profile's users: who a session is, or ``None`` to refuse the login."""
+
+    def __init__(self, settings: OpcUa, password: str | None, certificates: dict[bytes, str]) -> None:
+        self.settings = settings
+        self._password = password
+        self._certificates = certificates
+
+    @classmethod
+    async def of(cls, settings: OpcUa) -> _Users:
+        """Read the password file and the user certificates (DER or PEM) when the server starts."""
+        from asyncua.crypto import uacrypto
+
+        password = None
+        if settings.password_file is not None:
+            password = settings.password_file.read_text(encoding="utf-8").rstrip("\r\n")
+            if not password:
+                raise GatewayError(f"{settings.password_file}: the OPC UA password file is empty")
+        certificates = {}
+        for path in settings.user_certificates:
+            cert = await uacrypto.load_certificate(path)
+            certificates[uacrypto.der_from_x509(cert)] = path.name
+        return cls(settings, password, certificates)
+
+    def get_user(self, iserver: Any, username: str | None = None, password: str | None = None,
+                 certificate: Any = None) -> Any:
+        import hmac
+
+        from asyncua.crypto import uacrypto
+        from asyncua.crypto.permission_rules import User, UserRole
+
+        if username is not None:  # a user name token: the password must match, whatever else
+            ok = (self.settings.username is not None and self._password is not None
+                  and hmac.compare_digest(username.encode(), self.settings.username.encode())
+                  and hmac.compare_digest((password or "").encode(), self._password.encode()))
+            if not ok:
+                log.warning("OPC UA: login as %r refused (wrong user name or password)", username)
+                return None
+            return User(role=UserRole.User, name=username)
+        if certificate is not None:  # an X509 user token, or the client's own certificate on a signed channel
+            der = certificate if isinstance(certificate, bytes) else uacrypto.der_from_x509(certificate)
+            name = self._certificates.get(der)
+            if name is not None:
+                return User(role=UserRole.User, name=f"certificate {name}")
+        if self.settings.allow_anonymous:
+            return User(role=UserRole.Anonymous)
+        log.warning("OPC UA: an anonymous login refused (allow_anonymous is off)")
+        return None

@@ -1,7 +1,9 @@
-"""The OPC UA server with a real asyncua client on 127.0.0.1: what it shows, what it lets a client write.
+"""The OPC UA server with a real asyncua client on 127.0.0.1: what it shows, who may write what.
 
-One server for the module (asyncua's init takes about a second): configured ``writable = true``, so the
-operator's hold request is the one writable node and everything else must still refuse writes.
+One server for the module (asyncua's init takes about a second): ``writable = true`` with an operator
+(user name and password over an encrypted policy) and anonymous reading allowed, so the operator's hold
+request is the one writable node, only an authenticated session writes it, and everything else must still
+refuse writes. Certificates are made for the test by asyncua's own generator.
 """
 
 from __future__ import annotations
@@ -32,22 +34,57 @@ HEALTH = {
     "gaps": {"filled_windows": 2},
     "uptime_s": 12.5,
 }
+PASSWORD = "hold-me-4711"
+ENCRYPTED = "Basic256Sha256_SignAndEncrypt"
 
 
 @pytest.fixture(scope="module")
-def server():
+def pki(tmp_path_factory):
+    """A server and a client certificate (asyncua's generator), and the operator's password file."""
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    d = tmp_path_factory.mktemp("pki")
+
+    async def make():
+        await setup_self_signed_certificate(d / "server-key.pem", d / "server-cert.der", "urn:cncgw:test", "localhost",
+                                            [ExtendedKeyUsageOID.SERVER_AUTH], {"commonName": "cncgw test"})
+        await setup_self_signed_certificate(d / "client-key.pem", d / "client-cert.der", "urn:cncgw:client",
+                                            "localhost", [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "client"})
+
+    asyncio.run(make())
+    (d / "password").write_text(PASSWORD + "\n")
+    return d
+
+
+def settings(pki, **kw) -> OpcUa:
+    base = {"port": 0, "writable": True, "security": ("None", ENCRYPTED), "certificate": pki / "server-cert.der",
+            "private_key": pki / "server-key.pem", "username": "operator", "password_file": pki / "password",
+            "allow_anonymous": True}
+    return OpcUa(**{**base, **kw})
+
+
+@pytest.fixture(scope="module")
+def server(pki):
     profile = load_profile(PROFILES / "sim-vmc.toml")
     model = load_model(PROFILES / "sim-vmc.model.toml")
     holds: list[bool] = []
-    srv = OpcUaServer(OpcUa(port=0, writable=True), profile=profile, model=model, on_hold=holds.append).start()
+    srv = OpcUaServer(settings(pki), profile=profile, model=model, on_hold=holds.append).start()
     yield srv, holds
     srv.stop()
 
 
-async def client_session(endpoint, work):
+async def client_session(endpoint, work, *, user=None, password=None, pki=None):
     from asyncua import Client
 
-    async with Client(endpoint, timeout=10) as client:
+    client = Client(endpoint, timeout=10)
+    if pki is not None:  # the encrypted endpoint, as an operator's client would use it
+        await client.set_security_string(f"Basic256Sha256,SignAndEncrypt,{pki / 'client-cert.der'},"
+                                         f"{pki / 'client-key.pem'}")
+    if user is not None:
+        client.set_user(user)
+        client.set_password(password)
+    async with client:
         ns = await client.get_namespace_index("urn:cncgw")
         return await work(client, ns)
 
@@ -58,6 +95,23 @@ def published(srv, n):
             return
         threading.Event().wait(0.02)
     pytest.fail(f"the server applied {srv.published} snapshots, expected {n}")
+
+
+async def try_writes(client, ns):
+    """Write the hold request and three read-only nodes; the status of each (``"ok"`` or the error's name)."""
+    from asyncua import ua
+
+    out = {}
+    for key, v in (("Compensation.HoldRequest", ua.Variant(True, ua.VariantType.Boolean)),
+                   ("Estimate.z_um", ua.Variant(0.0, ua.VariantType.Double)),
+                   ("Compensation.Commanded.z_um", ua.Variant(99.0, ua.VariantType.Double)),
+                   ("Compensation.Mode", ua.Variant("write", ua.VariantType.String))):
+        try:
+            await client.get_node(f"ns={ns};s={key}").write_value(v)
+            out[key] = "ok"
+        except ua.UaStatusCodeError as exc:
+            out[key] = type(exc).__name__
+    return out
 
 
 def test_shows_factors_estimates_compensation_and_health(server):
@@ -89,38 +143,61 @@ def test_shows_factors_estimates_compensation_and_health(server):
     assert (v["Health.SampleRateHz"], v["Health.MissedTicks"], v["Health.GapWindows"]) == (499.5, 3, 2)
 
 
-def test_only_the_hold_request_is_writable(server):
+def test_an_anonymous_session_reads_and_is_refused_every_write(server):
     srv, holds = server
-
-    async def write(client, ns):
-        from asyncua import ua
-
-        refused = []
-        for key, v in (("Estimate.z_um", ua.Variant(0.0, ua.VariantType.Double)),
-                       ("Compensation.Commanded.z_um", ua.Variant(99.0, ua.VariantType.Double)),
-                       ("Compensation.Mode", ua.Variant("write", ua.VariantType.String))):
-            try:
-                await client.get_node(f"ns={ns};s={key}").write_value(v)
-            except ua.UaStatusCodeError as exc:
-                refused.append(type(exc).__name__)
-        await client.get_node(f"ns={ns};s=Compensation.HoldRequest").write_value(
-            ua.Variant(True, ua.VariantType.Boolean))
-        return refused
-
-    refused = asyncio.run(client_session(srv.endpoint, write))
-    assert len(refused) == 3
-    assert set(refused) <= {"BadUserAccessDenied", "BadNotWritable"}
-    before = srv.published
+    before = len(holds)
+    refused = asyncio.run(client_session(srv.endpoint, try_writes))
+    assert set(refused.values()) == {"BadUserAccessDenied"}  # the hold request too: anonymous never writes
+    published_before = srv.published
     srv.publish(HEALTH)  # the publisher checks the hold request as it applies a snapshot
+    published(srv, published_before + 1)
+    assert len(holds) == before
+
+
+def test_the_operator_logged_in_over_an_encrypted_channel_holds_the_offsets_and_nothing_else(server, pki):
+    srv, holds = server
+    result = asyncio.run(client_session(srv.endpoint, try_writes, user="operator", password=PASSWORD, pki=pki))
+    assert result["Compensation.HoldRequest"] == "ok"
+    assert {result[k] for k in result if k != "Compensation.HoldRequest"} <= {"BadUserAccessDenied", "BadNotWritable"}
+    before = srv.published
+    srv.publish(HEALTH)
     published(srv, before + 1)
-    assert holds == [True]
+    assert holds[-1:] == [True]
 
 
-def test_only_the_configured_security_policy_is_offered(server):
+def test_a_wrong_password_is_refused_at_login(server, pki):
+    from asyncua import ua
+
+    srv, _ = server
+    with pytest.raises(ua.UaStatusCodeError, match="BadUserAccessDenied"):
+        asyncio.run(client_session(srv.endpoint, try_writes, user="operator", password="guess", pki=pki))
+
+
+def test_under_encrypted_policies_anonymous_is_off_unless_allowed(pki):
+    from asyncua import ua
+
+    profile = load_profile(PROFILES / "sim-vmc.toml")
+    model = load_model(PROFILES / "sim-vmc.model.toml")
+    srv = OpcUaServer(settings(pki, allow_anonymous=False), profile=profile, model=model, on_hold=print).start()
+    try:
+        async def tokens(client, ns):
+            return {(e.SecurityPolicyUri.rsplit("#", 1)[-1], t.TokenType.name) for e in await client.get_endpoints()
+                    for t in e.UserIdentityTokens}
+
+        offered = asyncio.run(client_session(srv.endpoint, tokens, user="operator", password=PASSWORD, pki=pki))
+        assert {t for _, t in offered} == {"UserName"}  # no anonymous login on any endpoint
+        with pytest.raises(ua.UaStatusCodeError, match="BadIdentityTokenRejected"):
+            asyncio.run(client_session(srv.endpoint, tokens))
+    finally:
+        srv.stop()
+
+
+def test_only_the_configured_security_policies_are_offered(server):
     srv, _ = server
 
     async def endpoints(client, ns):
         return await client.get_endpoints()
 
     eps = asyncio.run(client_session(srv.endpoint, endpoints))
-    assert {e.SecurityPolicyUri.rsplit("#", 1)[-1] for e in eps} == {"None"}
+    assert {e.SecurityPolicyUri.rsplit("#", 1)[-1] for e in eps} == {"None", "Basic256Sha256"}
+    assert {t.TokenType.name for e in eps for t in e.UserIdentityTokens} == {"Anonymous", "UserName"}

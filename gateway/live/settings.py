@@ -142,7 +142,12 @@ class Compensation:
 
 @dataclass(frozen=True, kw_only=True, slots=True)
 class OpcUa:
-    """The OPC UA server: read-only unless ``writable`` (then only the operator's hold request)."""
+    """The OPC UA server: read-only unless ``writable`` (then only the operator's hold request).
+
+    Writing needs an authenticated session: ``username`` with the password in ``password_file``, or a client
+    certificate listed in ``user_certificates``. An anonymous session (``allow_anonymous``; default: only
+    when every policy is ``"None"``) reads and never writes.
+    """
 
     enabled: bool = True
     host: str = "127.0.0.1"
@@ -151,6 +156,20 @@ class OpcUa:
     certificate: Path | None = None
     private_key: Path | None = None
     writable: bool = False
+    username: str | None = None
+    password_file: Path | None = None  # read when the server starts: the password is never kept in the profile
+    user_certificates: tuple[Path, ...] = ()
+    allow_anonymous: bool = True
+
+    @property
+    def encrypting(self) -> tuple[str, ...]:
+        """The policies that encrypt the channel (a password may cross them)."""
+        return tuple(p for p in self.security if p.endswith("_SignAndEncrypt"))
+
+    @property
+    def signing(self) -> tuple[str, ...]:
+        """The policies that sign (a certificate token can be verified)."""
+        return tuple(p for p in self.security if p != "None")
 
     @property
     def endpoint(self) -> str:
@@ -313,17 +332,48 @@ def parse_opcua(root: Table, base: Path) -> OpcUa:
     cert = t.str("certificate", default=None, expected="a certificate file (DER or PEM)")
     key = t.str("private_key", default=None, expected="the certificate's private key file (PEM)")
     writable = t.bool("writable", default=False)
+    username = t.str("username", default=None, expected="the user name an operator's client logs in with")
+    password = t.str("password_file", default=None,
+                     expected="a file holding that user's password (relative to the profile; keep it 0600)")
+    user_certs = t.str_list("user_certificates", default=()) or ()
+    anonymous = t.bool("allow_anonymous", default=None)
     t.done()
     cert_p = (base / cert) if cert else None
     key_p = (base / key) if key else None
+    password_p = (base / password) if password else None
+    user_cert_ps = tuple(base / c for c in user_certs)
     secure = [s for s in (security or ()) if s != "None"]
     if secure and not (cert_p and key_p):
         t.problem("security", f"{', '.join(secure)} needs opcua.certificate and opcua.private_key")
-    for key, file in (("certificate", cert_p), ("private_key", key_p)):
+    for key, file in (("certificate", cert_p), ("private_key", key_p), ("password_file", password_p),
+                      *(("user_certificates", c) for c in user_cert_ps)):
         if file is not None and not file.is_file():  # found at start, not when the first client connects
-            what = "the server certificate (DER or PEM)" if key == "certificate" else "its private key (PEM)"
+            what = {"certificate": "the server certificate (DER or PEM)", "private_key": "its private key (PEM)",
+                    "password_file": "a file holding the password",
+                    "user_certificates": "a client certificate (DER or PEM)"}[key]
             t.problem(key, f'"{file}": file not found: expected {what}, a path relative to the profile\'s folder')
+    if (username is None) != (password_p is None):
+        t.problem("username" if username is None else "password_file",
+                  "opcua.username and opcua.password_file go together (a user logs in with both)")
+    if username is not None and not any(s.endswith("_SignAndEncrypt") for s in secure):
+        t.problem("username", "a password would cross the network in plain text: add a *_SignAndEncrypt policy to "
+                              "opcua.security (with certificate and private_key)")
+    if user_cert_ps and not secure:
+        t.problem("user_certificates", "a client certificate can only be verified on a signed channel: add a signed "
+                                       "policy to opcua.security")
+    authenticated = username is not None or bool(user_cert_ps)
+    if writable and not authenticated:
+        t.problem("writable", "writable = true needs an authenticated user, since an anonymous session never "
+                              "writes: set opcua.username and opcua.password_file, or opcua.user_certificates")
+    # anonymous reading: by default only where nothing is secured; an encrypted server asks who is there
+    allow_anonymous = not secure if anonymous is None else anonymous
+    if not allow_anonymous and not authenticated:
+        t.problem("allow_anonymous" if anonymous is not None else "security",
+                  "with anonymous sessions off (the default with signed or encrypted policies) nobody could log "
+                  "in: set opcua.username and opcua.password_file, opcua.user_certificates, or allow_anonymous = "
+                  "true (anonymous sessions read, never write)")
     return OpcUa(enabled=True if enabled is None else enabled, host=host or "127.0.0.1",
                  port=4840 if port is None else port, security=tuple(security or ("None",)), certificate=cert_p,
-                 private_key=key_p, writable=bool(writable))
+                 private_key=key_p, writable=bool(writable), username=username, password_file=password_p,
+                 user_certificates=user_cert_ps, allow_anonymous=allow_anonymous)
 
