@@ -1,7 +1,8 @@
 """Diagnosis where it is hard: the missing physics acts in every recording, on plants that are not ours.
 
     .venv/bin/python bench/diagnose.py [--quick] [--cases a,b,...] [--variants 1,2,3] [--jobs N]
-                                       [--report DIR] [--protocol new|old|both] [--no-real] [--cache DIR]
+                                       [--report DIR] [--protocol new|old|both] [--seen all|days] [--no-real]
+                                       [--cache DIR]
 
 Only what a user has is used: the ``cncgw`` commands, run in this process through ``gateway.cli.main``
 (``simulate record``, ``identify``, ``diagnose``, ``estimate --json``), so the bench keeps working while
@@ -22,6 +23,7 @@ machine's gains and time constants perturbed by seed N, simulators/machine/varia
 - scored on a fresh production day (two dates later, another schedule, other noise) that nothing was
   fitted on, with
   ``cncgw estimate --json`` and (a) the baseline, (b) the model diagnose wrote (``DIR/*.diagnosed.model.toml``);
+- ``--seen days`` diagnoses the four days alone (the contrast: what the experiments' presence changes);
 - the no-effect case of each variant (same schedules and noise, no effect) is the reference: an axis whose
   baseline fresh-day RMS stands above that level (x1.3 and +0.3 um) is an axis the effect moves; an effect
   with no such axis was absorbed by the identification.
@@ -452,7 +454,8 @@ def _pooled(d: dict[str, float]) -> float:
     return float(np.sqrt(np.mean(np.square(v)))) if v else math.nan
 
 
-def run_case(protocol: str, effect_name: str, variant: int, cache: Path, report: Path | None) -> Row:
+def run_case(protocol: str, effect_name: str, variant: int, cache: Path, report: Path | None,
+             seen_days_only: bool = False) -> Row:
     """Simulate (cached), identify, diagnose (timed) and score one case through the command line."""
     row = Row(protocol=protocol, effect=effect_name, variant=variant)
     effect = EFFECTS[effect_name]
@@ -468,7 +471,7 @@ def run_case(protocol: str, effect_name: str, variant: int, cache: Path, report:
             t0 = time.perf_counter()
             run_cli(["identify", "--profile", PROFILE, *exps, "-o", model])
             row.identify_s = time.perf_counter() - t0
-            seen = [*exps, *days] if protocol == "new" else days
+            seen = [*exps, *days] if protocol == "new" and not seen_days_only else days
             t0, c0 = time.perf_counter(), time.process_time()
             run_cli(["diagnose", "--profile", PROFILE, "--model", model, *seen, "-o", out, "--force"])
             row.diagnose_s, row.diagnose_cpu_s = time.perf_counter() - t0, time.process_time() - c0
@@ -599,9 +602,13 @@ def summary(verdicts: list[Verdict], *, protocol: str) -> list[str]:
     none = [v for v in rows if EFFECTS[v.row.effect].none]
     if none:
         ok = sum(not v.concealed for v in none)
+        hit = [v for v in none if v.concealed]
         out.append(f"no-effect cases accepting no concealed-effect family: {ok}/{len(none)} "
                    f"({100 * ok / len(none):.0f} %, aim >= {100 * AIM_NONE:.0f} %); accepting nothing at all: "
-                   f"{sum(not v.row.accepted for v in none)}/{len(none)}")
+                   f"{sum(not v.row.accepted for v in none)}/{len(none)}"
+                   + ("; where one was accepted, fresh-day pooled RMS " + ", ".join(
+                       f"{v.row.label} {_pooled(v.row.before):.2f}>{_pooled(v.row.after):.2f}" for v in hit)
+                      + " um (a gain says the baseline itself lacked it)" if hit else ""))
     unfit = [v for v in rows if v.unfit]
     bad = [v.row.label for v in unfit if v.row.nothing_missing]
     out.append(f"baseline unfit on the days diagnosed (max error > {UNFIT_PCT:.0f} % of a peak >= 2 um): "
@@ -751,6 +758,8 @@ def main() -> int:
     ap.add_argument("--variants", default="1,2,3", help="plant variants of the new protocol (default 1,2,3)")
     ap.add_argument("--seeds", default="1,2", help="seeds of the old protocol (default 1,2)")
     ap.add_argument("--protocol", choices=("new", "old", "both"), default="new")
+    ap.add_argument("--seen", choices=("all", "days"), default="all",
+                    help="new protocol: diagnose the experiments and the days (all, default) or the days only")
     ap.add_argument("--jobs", type=int, default=1, help="cases in N processes at once (default 1)")
     ap.add_argument("--report", help="write per-case diagnosis reports, summary.md and fresh_rms.png here")
     ap.add_argument("--no-real", action="store_true", help="skip the ACE lathe and SJTU spindle")
@@ -773,7 +782,7 @@ def main() -> int:
         wanted = list(names)
         if "none" not in wanted:  # the reference of every variant
             wanted.append("none")
-        tasks += [(protocol, n, i, cache, report) for i in ids for n in wanted]
+        tasks += [(protocol, n, i, cache, report, args.seen == "days") for i in ids for n in wanted]
     print(f"{len(tasks)} cases ({', '.join(protocols)} protocol), {args.jobs} process(es); BLAS threads "
           f"{os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}; cache {cache}", flush=True)
     rows: list[Row] = []
@@ -799,7 +808,8 @@ def main() -> int:
     verdicts = [judge(r, refs.get((r.protocol, r.variant))) for r in rows]
     lines: list[str] = []
     for protocol in protocols:
-        title = ("NEW protocol: effect in every recording (9 experiments + 4 days diagnosed), plant variants "
+        seen = "4 days diagnosed (--seen days)" if args.seen == "days" else "9 experiments + 4 days diagnosed"
+        title = (f"NEW protocol: effect in every recording ({seen}), plant variants "
                  if protocol == "new" else
                  "OLD protocol: baseline from clean experiments on the nominal machine, effect in one 4-day "
                  "recording diagnosed alone, seeds ")
