@@ -309,6 +309,17 @@ class LiveEstimator:
             y[i] += gain * float(sec.C @ self._x[k])
         return y
 
+    def contributions(self) -> np.ndarray:
+        """Current displacement per path, shape (axes, inputs): :meth:`output` before summing over inputs.
+
+        The same numbers as :meth:`DiscreteModel.contributions` at this step (the probe update in
+        :mod:`gateway.adaptive` scales each path by its own gain factor).
+        """
+        out = np.zeros((len(self.dm.model.axes), self._hist.shape[1]))
+        for k, (i, j, gain, sec) in enumerate(self._flat):
+            out[i, j] += gain * float(sec.C @ self._x[k])
+        return out
+
 
 def paper_convolution(model: ThermalModel, du: np.ndarray, dt_s: float, n_terms: int) -> np.ndarray:
     """The paper's estimator, eq. 5-6: lambda_i(k dt) = sum_j sum_{l=0..n} g_ij(l dt) u_j((k-l) dt) dt.

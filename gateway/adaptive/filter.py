@@ -1,0 +1,452 @@
+"""The model updated by probes: a Kalman filter bank on top of the identified model.
+
+State space, per axis (the axes are filtered independently: a probe's axes are measured independently)::
+
+    estimate(t) = sum_p (1 + g_p) c_p(t) + d(t)
+
+- ``c_p(t)``: the displacement the identified model gives through path p (one per model input), from its
+  own states: the model's one ZOH discretisation (:meth:`gateway.model.LiveEstimator.contributions`, or
+  :meth:`gateway.model.DiscreteModel.contributions` in batch). These states are driven by known inputs
+  and carry no noise, so they stay outside the filter's covariance and enter through the measurement row.
+- ``g_p``: the path's relative gain error, a slowly varying parameter. Its prior is the identification's
+  own standard deviation (``PathTF.sd["gain"] / |gain|``); it relaxes back to 0 with ``gain_memory_h``
+  (a first-order Gauss-Markov process whose stationary variance is that prior), so without probes the
+  estimate returns to the identified model and its band to the identification's.
+- ``d``: the disturbance the model does not know (the room, a slow part, coolant): an offset whose rate
+  ``r`` is itself a Gauss-Markov process (``rate_sd_um_per_h``, ``rate_tau_h``: an integrated random walk
+  whose slope fades), plus a white random walk of the offset (``walk_um_per_sqrt_h``); the offset relaxes
+  toward 0 with ``offset_tau_h`` so the band stays bounded without probes.
+
+How strong the disturbance is differs from machine to machine and week to week, so the filter is a bank
+of ``len(scales)`` filters whose disturbance variances are the base times each scale; each probe weighs
+them by the likelihood of its innovation, and the weights forget with ``weight_memory_h`` (old conditions
+fade). The estimate is the weighted mean, its variance the weighted variances plus the spread of the
+members' means. That variance is the band: parameter uncertainty from identification propagated through
+the model (``c_p^2 var(g_p)``) plus the disturbance's.
+
+Bounded: a probe is applied only when it passes :func:`gateway.adaptive.probes.probe_problems`, the
+sequence check and the innovation test (``|value - estimate| <= gate_sigma x sd``, the probe's own
+uncertainty included); a reading that is the estimate's negative within the gate is named as a wrong sign.
+Every refusal is a :class:`~gateway.adaptive.probes.ProbeDecision` with its reason; the state is untouched.
+
+The filter's state is a pure function of the window history and the probes: replaying both rebuilds it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gateway.adaptive.probes import Probe, ProbeDecision, SequenceCheck, probe_problems
+from gateway.model.model import ThermalModel
+
+Z95 = 1.959963984540054
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class DriftSettings:
+    """The disturbance model, the forgetting, and the probe gate (see the module docstring)."""
+
+    rate_sd_um_per_h: float = 1.0
+    rate_tau_h: float = 6.0
+    walk_um_per_sqrt_h: float = 0.3
+    offset_tau_h: float = 72.0
+    #: variance scales of the filter bank (the disturbance's variances times each)
+    scales: tuple[float, ...] = tuple(8.0 ** k for k in range(-5, 3))
+    #: variance scales of the gains' prior (production differs from the identification runs); the bank
+    #: holds every pair (scale, gain scale)
+    gain_scales: tuple[float, ...] = (0.1, 1.0, 10.0, 100.0)
+    #: after this many probes in a row beyond the gate on the same side, conditions changed: re-anchor
+    reanchor_after: int = 2
+    weight_memory_h: float = 24.0
+    #: estimate each path's gain as a slowly varying parameter (False: the offset only)
+    gains: bool = True
+    gain_memory_h: float = 48.0
+    #: relative gain sd for a path whose model file has none (a hand-written or the paper's model)
+    gain_sd_default: float = 0.1
+    gate_sigma: float = 3.0
+    #: the model's motion (sum over paths of |change|, um/h) at which the disturbance's noise doubles
+    activity_ref_um_per_h: float = 3.0
+    #: the smallest weight a member keeps (so a change of conditions is found again)
+    weight_floor: float = 1e-3
+
+    def __post_init__(self) -> None:
+        for name in ("rate_sd_um_per_h", "rate_tau_h", "offset_tau_h", "weight_memory_h", "gain_memory_h",
+                     "gate_sigma", "activity_ref_um_per_h"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"DriftSettings.{name} must be finite and > 0. Got {v!r}")
+        if not (math.isfinite(self.walk_um_per_sqrt_h) and self.walk_um_per_sqrt_h >= 0):
+            raise ValueError(f"DriftSettings.walk_um_per_sqrt_h must be >= 0. Got {self.walk_um_per_sqrt_h!r}")
+        for name in ("scales", "gain_scales"):
+            v = getattr(self, name)
+            if not v or not all(math.isfinite(x) and x > 0 for x in v):
+                raise ValueError(f"DriftSettings.{name} must be positive. Got {v!r}")
+        if self.reanchor_after < 2:
+            raise ValueError(f"DriftSettings.reanchor_after must be >= 2. Got {self.reanchor_after!r}")
+
+
+def gain_sd(model: ThermalModel, default: float) -> np.ndarray:
+    """Relative standard deviation of each path's static gain, shape (axes, inputs); 0 for a zero path."""
+    out = np.zeros((len(model.axes), len(model.input_names)))
+    for i, a in enumerate(model.axes):
+        for j, f in enumerate(model.input_names):
+            p = model.path(a, f)
+            if p.gain == 0.0:
+                continue
+            sd = p.sd.get("gain")
+            out[i, j] = default if sd is None or not math.isfinite(sd) else min(sd / abs(p.gain), 1.0)
+    return out
+
+
+def _tails(mean: np.ndarray, sd: np.ndarray, w: np.ndarray, mu: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """P(|Y - mu| > h) for the Gaussian mixture (weights w, members mean/sd; all (A, M)) at h (A, K)."""
+    from scipy.special import ndtr
+
+    a = (mu[:, None, None] + h[:, None, :] - mean[:, :, None]) / sd[:, :, None]
+    b = (mu[:, None, None] - h[:, None, :] - mean[:, :, None]) / sd[:, :, None]
+    return np.einsum("am,amk->ak", w, ndtr(-a) + ndtr(b))
+
+
+_GRID = np.linspace(0.0, 1.0, 24)
+
+
+def half_width(mean: np.ndarray, var: np.ndarray, w: np.ndarray, mu: np.ndarray, p: float) -> np.ndarray:
+    """Per axis the h with P(|Y - mu| <= h) = p under the mixture: the band is symmetric about the estimate.
+
+    Not 1.96 x the mixture's standard deviation: a bank with a little weight on a wide member has heavy
+    tails, and its moment band would be several times too wide where most of the weight is narrow.
+    """
+    sd = np.sqrt(var + 1e-18)
+    # bracket: at lo every member's tail is above 1 - p, at hi below it (p <= 0.9973)
+    lo = 0.06 * sd.min(axis=1)
+    hi = (np.abs(mean - mu[:, None]) + 3.0 * sd).max(axis=1)
+    grid = lo[:, None] * (hi / lo)[:, None] ** _GRID[None, :]
+    tail = _tails(mean, sd, w, mu, grid) - (1.0 - p)  # falls through 0 from above
+    k = np.clip((tail > 0).sum(axis=1), 1, grid.shape[1] - 1)
+    rows = np.arange(grid.shape[0])
+    t0, t1 = tail[rows, k - 1], tail[rows, k]
+    h0, h1 = grid[rows, k - 1], grid[rows, k]
+    h = h0 + (h1 - h0) * np.clip(t0 / np.where(t0 - t1 > 0, t0 - t1, 1.0), 0.0, 1.0)
+    for _ in range(2):  # Newton on the tail probability, from the bracket
+        za = (mu[:, None] + h[:, None] - mean) / sd
+        zb = (mu[:, None] - h[:, None] - mean) / sd
+        dens = (w * (np.exp(-0.5 * za * za) + np.exp(-0.5 * zb * zb)) / (sd * math.sqrt(2 * math.pi))).sum(axis=1)
+        f = _tails(mean, sd, w, mu, h[:, None])[:, 0] - (1.0 - p)
+        h = np.clip(h + f / np.maximum(dens, 1e-300), h0, h1)
+    return h
+
+
+def equivalent_sigma(mean: np.ndarray, var: np.ndarray, w: np.ndarray, mu: np.ndarray, dev: np.ndarray) -> np.ndarray:
+    """How many sigma of a normal distribution have the same two-sided tail as ``dev`` under the mixture."""
+    from scipy.special import ndtri
+
+    tail = _tails(mean, np.sqrt(var + 1e-18), w, mu, np.abs(dev)[:, None])[:, 0]
+    return np.where(tail > 0, -ndtri(np.clip(tail, 1e-300, 1.0) / 2.0), np.inf) * np.sign(dev)
+
+
+def _drift_model(s: DriftSettings, dt_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(Phi, Q, P_stationary) of the disturbance [d, r] (um, um/s) over one window, at scale 1.
+
+    Continuous: d' = -d / offset_tau + r + w_d, r' = -r / rate_tau + w_r; discretised exactly (Van Loan).
+    """
+    from scipy.linalg import expm, solve_continuous_lyapunov
+
+    tau_d, tau_r = s.offset_tau_h * 3600.0, s.rate_tau_h * 3600.0
+    A = np.array([[-1.0 / tau_d, 1.0], [0.0, -1.0 / tau_r]])
+    q_r = 2.0 * (s.rate_sd_um_per_h / 3600.0) ** 2 / tau_r  # stationary var of r = q_r tau_r / 2
+    q_d = s.walk_um_per_sqrt_h ** 2 / 3600.0
+    Qc = np.diag([q_d, q_r])
+    M = np.zeros((4, 4))
+    M[:2, :2] = -A * dt_s
+    M[:2, 2:] = Qc * dt_s
+    M[2:, 2:] = A.T * dt_s
+    E = expm(M)
+    Phi = E[2:, 2:].T
+    Q = Phi @ E[:2, 2:]
+    P_inf = solve_continuous_lyapunov(A, -Qc)
+    return Phi, (Q + Q.T) / 2.0, (P_inf + P_inf.T) / 2.0
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class AxisEstimate:
+    """One axis after a window: the updated estimate and its standard uncertainty (um)."""
+
+    estimate_um: float
+    sd_um: float
+    model_um: float  # the identified model alone
+    disturbance_um: float  # the offset the probes taught (weighted over the bank)
+
+    @property
+    def band_um(self) -> tuple[float, float]:
+        """The 95 % band of the true displacement."""
+        return (self.estimate_um - Z95 * self.sd_um, self.estimate_um + Z95 * self.sd_um)
+
+
+@dataclass(kw_only=True)
+class _AxisMemory:
+    last_probe_s: float | None = None
+    applied: int = 0
+    rejected: int = 0
+    #: (sigma, um) of the probes refused as outliers since the last one applied
+    beyond: list[tuple[float, float]] = field(default_factory=list)
+    reanchored: int = 0
+
+
+class AdaptiveEstimator:
+    """The identified model updated by probes (see the module docstring).
+
+    Call :meth:`step` once per window with the model's per-path contributions at the window's end, and
+    :meth:`probe` for each probe taken inside the last stepped window (or the one before).
+    """
+
+    def __init__(self, model: ThermalModel, *, window_s: float, settings: DriftSettings | None = None) -> None:
+        self.settings = settings or DriftSettings()
+        s = self.settings
+        self.axes = tuple(model.axes)
+        self.window_s = float(window_s)
+        n_a, n_in = len(model.axes), len(model.input_names)
+        self.n_in = n_in
+        n = n_in + 2
+        self.gain_sd = gain_sd(model, s.gain_sd_default) if s.gains else np.zeros((n_a, n_in))
+        pairs = [(a, b) for a in s.scales for b in (s.gain_scales if s.gains else (1.0,))]
+        scales = np.array([a for a, _ in pairs])
+        g_scales = np.array([b for _, b in pairs])
+        self.scales, self.gain_scales = scales, g_scales
+        n_m = len(pairs)
+        phi_dr, q_dr, p_dr = _drift_model(s, self.window_s)
+        a_g = math.exp(-self.window_s / (s.gain_memory_h * 3600.0))
+        F = np.zeros((n, n))
+        F[:n_in, :n_in] = a_g * np.eye(n_in)
+        F[n_in:, n_in:] = phi_dr
+        self.F = F
+        self.Qg = np.zeros((n_a, n_m, n, n))
+        self.Qd = np.zeros((n_a, n_m, n, n))
+        P0 = np.zeros((n_a, n_m, n, n))
+        prior = np.zeros((n_a, n_m, n, n))
+        for i in range(n_a):
+            var_g = np.minimum(self.gain_sd[i][:, None] ** 2 * g_scales[None, :], 1.0)  # (inputs, members)
+            self.Qg[i, :, np.arange(n_in), np.arange(n_in)] = var_g * (1.0 - a_g * a_g)
+            P0[i, :, np.arange(n_in), np.arange(n_in)] = var_g
+            self.Qd[i, :, n_in:, n_in:] = scales[:, None, None] * q_dr
+            prior[i, :, n_in:, n_in:] = scales[:, None, None] * p_dr
+        self.x = np.zeros((n_a, n_m, n))
+        # at the start the disturbance is 0: the gateway's reference is the machine at rest in equilibrium (as
+        # the datum was probed); it grows from there. A re-anchor widens by the stationary spread instead.
+        self.P = P0
+        self.P_reanchor = prior + P0
+        self.logw = np.full((n_a, n_m), -math.log(n_m))
+        self.c = np.zeros((n_a, n_in))
+        self.c_prev = np.zeros((n_a, n_in))
+        self.time_s: float | None = None
+        self.prev_time_s: float | None = None
+        self.steps = 0
+        self.seq = SequenceCheck()
+        self.memory = [_AxisMemory() for _ in self.axes]
+        self.decisions: list[ProbeDecision] = []
+
+    # -- the window ---------------------------------------------------------------------------------------
+    def step(self, contributions: np.ndarray, end_s: float) -> None:
+        """Advance one window: ``contributions`` (axes, inputs) are the model's per-path outputs at ``end_s``."""
+        c = np.asarray(contributions, dtype=float)
+        if c.shape != self.c.shape or not np.all(np.isfinite(c)):
+            raise ValueError(f"contributions: expected finite values of shape {self.c.shape}, got {c.shape}")
+        if self.time_s is not None:
+            self.x = self.x @ self.F.T
+            # the disturbance moves faster while the machine works: the model's own motion (every path's,
+            # cancelling or not) scales its noise
+            act = np.abs(c - self.c).sum(axis=1) * (3600.0 / self.window_s) / self.settings.activity_ref_um_per_h
+            self.P = self.F @ self.P @ self.F.T + self.Qg + self.Qd * (1.0 + act)[:, None, None, None]
+        self.c_prev, self.c = self.c, c
+        self.prev_time_s, self.time_s = self.time_s, float(end_s)
+        self.steps += 1
+
+    def _row(self, c: np.ndarray) -> np.ndarray:
+        """Measurement rows (axes, n) for contributions ``c`` (axes, inputs)."""
+        return np.concatenate([c, np.ones((c.shape[0], 1)), np.zeros((c.shape[0], 1))], axis=1)
+
+    def _members(self, c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per axis and member: estimate and variance at contributions ``c``; and the weights."""
+        H = self._row(c)
+        mean = c.sum(axis=1)[:, None] + np.einsum("an,amn->am", H, self.x)
+        var = np.einsum("an,amnk,ak->am", H, self.P, H)
+        w = np.exp(self.logw - self.logw.max(axis=1, keepdims=True))
+        return mean, np.clip(var, 0.0, None), w / w.sum(axis=1, keepdims=True)
+
+    def estimate(self) -> list[AxisEstimate]:
+        """Every axis now: the weighted estimate and its standard uncertainty."""
+        mean, var, w = self._members(self.c)
+        mu = (w * mean).sum(axis=1)
+        sd = half_width(mean, var, w, mu, 0.95) / Z95
+        dist = (w * self.x[:, :, self.n_in]).sum(axis=1)
+        model = self.c.sum(axis=1)
+        return [AxisEstimate(estimate_um=float(mu[i]), sd_um=float(sd[i]), model_um=float(model[i]),
+                             disturbance_um=float(dist[i])) for i in range(len(self.axes))]
+
+    def weights(self) -> np.ndarray:
+        """The bank's weights per axis (axes, members)."""
+        return self._members(self.c)[2]
+
+    # -- probes -------------------------------------------------------------------------------------------
+    def probe(self, probe: Probe) -> list[ProbeDecision]:
+        """Apply ``probe`` (taken after the window before the last one ended); every axis decided and kept."""
+        out = self._probe(probe)
+        self.decisions.extend(out)
+        return out
+
+    def _refuse(self, probe: Probe, reason: str, axis: str = "") -> ProbeDecision:
+        return ProbeDecision(seq=probe.seq, time_s=probe.time_s, axis=axis, accepted=False, reason=reason)
+
+    def _probe(self, probe: Probe) -> list[ProbeDecision]:
+        seq = self.seq.check(probe)
+        if seq == "":
+            return []  # the same probe read again
+        if seq is not None:
+            return [self._refuse(probe, seq)]
+        problems = probe_problems(probe, self.axes)
+        if problems:
+            self.seq.note(probe)
+            return [self._refuse(probe, "; ".join(problems))]
+        if self.time_s is None:
+            return [self._refuse(probe, "no window estimated yet: nothing to compare the probe with")]
+        lo = self.prev_time_s if self.prev_time_s is not None else self.time_s - self.window_s
+        if probe.time_s > self.time_s + 1e-6:
+            return [self._refuse(probe, f"taken at {probe.time_s:.0f} s, after the last estimated window "
+                                        f"({self.time_s:.0f} s): apply it after that window's step")]
+        if probe.time_s < lo - 1e-6:
+            self.seq.note(probe)
+            return [self._refuse(probe, f"taken at {probe.time_s:.0f} s, more than a window before the last "
+                                        f"estimate ({self.time_s:.0f} s): too old to compare")]
+        self.seq.note(probe)
+        # the model at the probe's instant, between the last two window ends (the disturbance barely moves)
+        f = 1.0 if self.prev_time_s is None else (probe.time_s - lo) / max(self.time_s - lo, 1e-9)
+        c = self.c_prev + f * (self.c - self.c_prev)
+        mean, var, w = self._members(c)
+        R = probe.sd_um ** 2
+        out = []
+        for a, z in probe.values_um.items():
+            i = self.axes.index(a)
+            mu = float(w[i] @ mean[i])
+            args = (mean[i: i + 1], var[i: i + 1] + R, w[i: i + 1], np.array([mu]))
+            sd = float(half_width(*args, 0.95)[0]) / Z95
+            nu = float(equivalent_sigma(*args, np.array([z - mu]))[0])
+            gate = self.settings.gate_sigma
+            base = dict(seq=probe.seq, time_s=probe.time_s, axis=a, value_um=float(z), predicted_um=mu,
+                        predicted_sd_um=sd, innovation_sigma=nu)
+            mem = self.memory[i]
+            if abs(nu) > gate:
+                # the reading's negative is where the estimate is (or far nearer than the reading itself)
+                if abs(mu) > gate * sd / 2 and (abs(z + mu) <= gate * sd or abs(z + mu) <= 0.2 * abs(z - mu)):
+                    mem.rejected += 1
+                    out.append(ProbeDecision(accepted=False, reason=(
+                        f"wrong sign: {z:+.2f} um is the negative of the estimate {mu:+.2f} +- {sd:.2f} um (is the "
+                        "probe macro's sign convention the model's?)"), **base))
+                    continue
+                agree = self._changed(mem, z - mu)
+                if not agree:
+                    mem.beyond.append((nu, z - mu))
+                    mem.rejected += 1
+                    out.append(ProbeDecision(accepted=False, reason=(
+                        f"outlier: {z:+.2f} um is {nu:+.1f} sigma from the estimate {mu:+.2f} +- {sd:.2f} um "
+                        f"(gate {gate:g} sigma)"), **base))
+                    continue
+                # probes in a row beyond the gate, on the same side and telling the same story (within a
+                # factor of two) are no outliers: conditions changed (a slow part warmed, the room moved) faster
+                # than the bank expected. Re-anchor: every member's uncertainty widened by its prior, the
+                # weights even, then the probe is applied.
+                seen = ", ".join(f"{d:+.2f}" for d in agree)
+                self._reanchor(i)
+                mean, var, w = self._members(c)
+                mem.reanchored += 1
+                base["reason"] = (
+                    f"re-anchored: this probe is {nu:+.1f} sigma ({z - mu:+.2f} um) from the estimate and "
+                    f"{len(agree)} refused since the last one applied were off the same way ({seen} um): "
+                    "conditions changed; the uncertainty was widened by its prior and this probe applied")
+            self._update(i, c[i], float(z), R, probe.time_s, mean[i], var[i])
+            mem.applied += 1
+            mem.beyond.clear()
+            out.append(ProbeDecision(accepted=True, **({"reason": ""} | base)))
+        return out
+
+    def _changed(self, mem: _AxisMemory, dev_um: float) -> list[float]:
+        """The refused deviations that, with this one, say conditions changed (``[]``: they do not).
+
+        Conditions changed when ``reanchor_after - 1`` probes refused since the last one applied were off the
+        same way as this one, within a factor of two. A gross outlier does not agree with a real change, so it
+        is never applied, never makes a later probe applied, and never hides a change either.
+        """
+        agree = [d for _, d in mem.beyond
+                 if math.copysign(1.0, d) == math.copysign(1.0, dev_um) and 0.5 <= abs(d) / abs(dev_um) <= 2.0]
+        return agree if len(agree) >= self.settings.reanchor_after - 1 else []
+
+    def _reanchor(self, i: int) -> None:
+        """Axis ``i``: every member's covariance at least its prior, the bank's weights even."""
+        self.P[i] = self.P[i] + self.P_reanchor[i]  # a sum stays a covariance; an element-wise max need not
+        self.logw[i] = -math.log(self.logw.shape[1])
+
+    def _update(self, i: int, c: np.ndarray, z: float, R: float, t_s: float, mean: np.ndarray,
+                var: np.ndarray) -> None:
+        """The Kalman update of every member of axis ``i``, then the bank's weights."""
+        h = np.concatenate([c, [1.0, 0.0]])
+        S = var + R  # (members,)
+        nu = z - mean
+        P = self.P[i]
+        PH = P @ h  # (members, n)
+        K = PH / S[:, None]
+        self.x[i] = self.x[i] + K * nu[:, None]
+        n = h.size
+        IKH = np.eye(n)[None] - K[:, :, None] * h[None, None, :]
+        P = IKH @ P @ IKH.transpose(0, 2, 1) + R * K[:, :, None] * K[:, None, :]
+        self.P[i] = (P + P.transpose(0, 2, 1)) / 2.0
+        mem = self.memory[i]
+        s = self.settings
+        if mem.last_probe_s is not None:
+            alpha = math.exp(-max(t_s - mem.last_probe_s, 0.0) / (s.weight_memory_h * 3600.0))
+            self.logw[i] *= alpha
+        mem.last_probe_s = t_s
+        self.logw[i] += -0.5 * (np.log(2 * math.pi * S) + nu * nu / S)
+        w = np.exp(self.logw[i] - self.logw[i].max())
+        w /= w.sum()
+        w = (1.0 - s.weight_floor) * w + s.weight_floor / w.size
+        self.logw[i] = np.log(w)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Replay:
+    """Every window of a batch run through :class:`AdaptiveEstimator` (arrays are (axes, N))."""
+
+    axes: tuple[str, ...]
+    time_s: np.ndarray
+    estimate_um: np.ndarray
+    sd_um: np.ndarray
+    model_um: np.ndarray
+    decisions: tuple[ProbeDecision, ...] = field(default=())
+
+    def band_um(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.estimate_um - Z95 * self.sd_um, self.estimate_um + Z95 * self.sd_um
+
+
+def replay(model: ThermalModel, contributions: np.ndarray, time_s: Sequence[float], probes: Sequence[Probe], *,
+           window_s: float, settings: DriftSettings | None = None) -> Replay:
+    """Run the estimator over ``contributions`` (axes, inputs, N) at window ends ``time_s`` with ``probes``.
+
+    A probe taken in ``(time_s[k-1], time_s[k]]`` is applied after window k is stepped, as live.
+    """
+    est = AdaptiveEstimator(model, window_s=window_s, settings=settings)
+    t = np.asarray(time_s, dtype=float)
+    n = t.size
+    order = sorted(probes, key=lambda p: p.time_s)
+    out = np.empty((3, len(model.axes), n))
+    q = 0
+    for k in range(n):
+        est.step(contributions[:, :, k], t[k])
+        while q < len(order) and order[q].time_s <= t[k] + 1e-9:
+            est.probe(order[q])
+            q += 1
+        for i, e in enumerate(est.estimate()):
+            out[0, i, k], out[1, i, k], out[2, i, k] = e.estimate_um, e.sd_um, e.model_um
+    return Replay(axes=tuple(model.axes), time_s=t, estimate_um=out[0], sd_um=out[1], model_um=out[2],
+                  decisions=tuple(est.decisions))
