@@ -77,6 +77,23 @@ class CncLink(ModbusTcpDriver):
         return CncState(applied_counts=counts, applied_um={a.axis: counts[a.axis] * a.unit_um for a in s.axes},
                         status=status)
 
+    def read_words(self, address: int, count: int, *, function: int = 4) -> list[int]:
+        """``count`` raw registers from ``address`` in one request (the probe block a CNC macro writes)."""
+        words: list[int] = []
+
+        def request(c: Any) -> Any:
+            call = c.read_input_registers if function == 4 else c.read_holding_registers
+            rr = call(address, count=count, device_id=self.options.unit_id)
+            if not rr.isError():
+                words.extend(rr.registers[:count])
+            return rr
+
+        self._call(f"fc{function} {address}..{address + count - 1}", request)
+        if len(words) < count:
+            raise DriverError(f'device "{self.name}" ({self.kind}): fc{function} {address}..{address + count - 1}: '
+                              f"expected {count} registers, got {len(words)}")
+        return words
+
     # -- writing ------------------------------------------------------------------------------------------
     def write_offsets(self, counts: Mapping[str, int]) -> None:
         """Write the offset commands of the axes in ``counts``; contiguous registers go in one request."""

@@ -18,8 +18,18 @@ holding     6         heartbeat: any *change* of value counts as a beat
 input       0-5       applied offsets read-back, same encoding as the commands
 input       6         status word (bits below)
 input       7         watchdog trips since start
+input       10-18     probe block (only with ``probes``): sequence number, axis mask (bit 0 x, 1 y,
+                      2 z), x, y, z (int32, ``offset_unit_um``, high word first), uncertainty
+                      (uint16, 1 sigma, ``offset_unit_um``); see :mod:`gateway.adaptive.probes`
 discrete    0-4       the status bits, one input each
 ==========  ========  =====================================================================
+
+Probe cycles (``CompensationConfig.probes``, a :class:`ProbeCycles`): every ``every_s`` of clock time from
+``first_s`` a macro probes a reference artefact and writes the block as a real one would: the measured
+tool-to-table displacement with the compensation in force taken out (the residual minus the applied
+offset: the thermal displacement the gateway estimates), plus normal noise of ``sd_um``, rounded to the
+register unit; the sequence number last, one up from the previous. :meth:`CompensationServer.write_probe`
+writes any block (fault injection: a wrong sign, a repeated number, values out of range).
 
 Status bits: 0 ACTIVE (enabled, offsets applied), 1 WATCHDOG_TRIPPED (latched until enable is written
 1 again), 2 RAMPING (applied offsets on their way to zero), 3 LAST_WRITE_REJECTED (cleared by the next
@@ -48,9 +58,11 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 from pymodbus.constants import ExcCodes
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+from gateway.adaptive.probes import PROBE_BLOCK_WORDS, encode_probe_block
 from gateway.clock import Clock
 from simulators.devices.faults import Faults
 from simulators.devices.modbus_base import ModbusDevice, RtuBus, RtuTransport, TcpTransport
@@ -61,6 +73,24 @@ STATUS_BITS = {"ACTIVE": ACTIVE, "WATCHDOG_TRIPPED": WATCHDOG_TRIPPED, "RAMPING"
                "LAST_WRITE_REJECTED": LAST_WRITE_REJECTED, "HEARTBEAT_OK": HEARTBEAT_OK}
 _COIL_CODES = {1, 5, 15}
 _HOLDING_CODES = {3, 6, 16, 22, 23}
+
+
+@dataclass(frozen=True, kw_only=True)
+class ProbeCycles:
+    """The CNC's probe cycles on a schedule (see the module docstring)."""
+
+    every_s: float = 7200.0
+    first_s: float | None = None  # clock time of the first cycle (default: every_s after the start)
+    axes: tuple[str, ...] = ("x", "y", "z")
+    sd_um: float = 0.3
+    seed: int = 0
+    address: int = 10  # input registers address .. address + 8
+
+    def __post_init__(self) -> None:
+        if not self.every_s > 0 or not self.sd_um >= 0:
+            raise ValueError(f"every_s must be > 0 and sd_um >= 0. Got {self.every_s!r}, {self.sd_um!r}")
+        if not self.axes or not set(self.axes) <= {"x", "y", "z"}:
+            raise ValueError(f"axes must be some of x, y, z. Got {self.axes!r}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -79,6 +109,7 @@ class CompensationConfig:
     heartbeat_address: int = 6  # holding
     status_address: int = 6  # input; the trips counter follows it
     tick_s: float = 0.02  # wall seconds between watchdog evaluations when nobody asks
+    probes: ProbeCycles | None = None  # probe cycles on a schedule (None: this CNC never probes)
 
     def __post_init__(self) -> None:
         if self.offset_encoding not in ("int32", "int16"):
@@ -101,6 +132,10 @@ class CompensationConfig:
             raise ValueError(f"heartbeat_address {self.heartbeat_address} overlaps the offsets {sorted(offsets)}")
         if offsets & {self.status_address, self.status_address + 1}:
             raise ValueError(f"status_address {self.status_address} overlaps the read-back {sorted(offsets)}")
+        if self.probes is not None:
+            block = set(range(self.probes.address, self.probes.address + PROBE_BLOCK_WORDS))
+            if block & (offsets | {self.status_address, self.status_address + 1}):
+                raise ValueError(f"the probe block at {self.probes.address} overlaps the read-back or the status")
 
     @property
     def words_per_offset(self) -> int:
@@ -194,6 +229,14 @@ class CompensationServer(ModbusDevice):
         self._applied_um = [0.0] * n
         self._pushed: tuple[float, ...] | None = None
         self._tick_task: asyncio.Task[None] | None = None
+        pc = config.probes
+        if pc is not None and not callable(getattr(source, "residual_um", None)):
+            raise ValueError("probe cycles need a machine that tells its residual error (residual_um(t))")
+        self._probe_words = [0] * PROBE_BLOCK_WORDS
+        self._probe_seq = 0
+        self._next_probe_t = None if pc is None else (pc.every_s if pc.first_s is None else pc.first_s)
+        self._probe_rng = np.random.default_rng([pc.seed if pc else 0, 16])
+        self.probes_taken: list[tuple[float, dict[str, float]]] = []  # (clock time, values written), for tests
 
     # -- public, thread-safe ----------------------------------------------------------------------------
     def update(self) -> CompensationStatus:
@@ -244,6 +287,44 @@ class CompensationServer(ModbusDevice):
             self._pushed = applied
             self._source.set_compensation(dict(zip(cfg.axes, applied, strict=True)))
 
+        self._probe_cycles(now)
+
+    def _probe_cycles(self, now: float) -> None:
+        """Run every probe cycle that was due by ``now``, each at its own scheduled time."""
+        pc = self.config.probes
+        while pc is not None and self._next_probe_t is not None and self._next_probe_t <= now:
+            t = self._next_probe_t
+            residual = self._source.residual_um(t)  # type: ignore[attr-defined]
+            applied = self._applied_at(t)
+            values = {a: float(residual[a]) - applied[a] + pc.sd_um * float(self._probe_rng.standard_normal())
+                      for a in pc.axes}
+            self._probe_seq = (self._probe_seq + 1) & 0xFFFF
+            self._probe_words = encode_probe_block(seq=self._probe_seq, values_um=values, sd_um=pc.sd_um,
+                                                   unit_um=self.config.offset_unit_um)
+            self.probes_taken.append((t, values))
+            self._next_probe_t = t + pc.every_s
+
+    def _applied_at(self, t: float) -> dict[str, float]:
+        """The offsets in force at ``t`` (the last pushed to the machine; a probe macro reads its own)."""
+        del t  # the offsets pushed are the ones in force: cycles run at or before every evaluation
+        return dict(zip(self.config.axes, self._applied_um, strict=True)) | {
+            a: 0.0 for a in ("x", "y", "z") if a not in self.config.axes}
+
+    def write_probe(self, words: list[int] | None = None, *, values_um: dict[str, float] | None = None,
+                    sd_um: float = 0.3, seq: int | None = None) -> None:
+        """Write a probe block as given (fault injection): raw ``words``, or values with a sequence number."""
+        with self._lock:
+            if words is None:
+                if values_um is None:
+                    raise ValueError("write_probe needs words or values_um")
+                s = self._probe_seq + 1 if seq is None else seq
+                words = encode_probe_block(seq=s, values_um=values_um, sd_um=sd_um,
+                                           unit_um=self.config.offset_unit_um)
+            if len(words) != PROBE_BLOCK_WORDS:
+                raise ValueError(f"a probe block is {PROBE_BLOCK_WORDS} registers. Got {len(words)}")
+            self._probe_words = [int(w) & 0xFFFF for w in words]
+            self._probe_seq = self._probe_words[0]
+
     def _start_drop(self, t0: float) -> None:
         self._drop_from_um = list(self._applied_um)
         self._drop_t0 = t0
@@ -267,6 +348,8 @@ class CompensationServer(ModbusDevice):
                    SimData(cfg.heartbeat_address, datatype=DataType.REGISTERS)]
         inputs = [SimData(cfg.offset_address, count=cfg.n_offset_registers, datatype=DataType.REGISTERS),
                   SimData(cfg.status_address, count=2, datatype=DataType.REGISTERS)]
+        if cfg.probes is not None:
+            inputs.append(SimData(cfg.probes.address, count=PROBE_BLOCK_WORDS, datatype=DataType.REGISTERS))
         # four separate tables (coils, discrete inputs, holding, input), as on a real controller
         return SimDevice(0, simdata=(bits, list(bits), holding, inputs), action=self._action)
 
@@ -342,3 +425,8 @@ class CompensationServer(ModbusDevice):
             registers[cfg.offset_address - start : cfg.offset_address - start + len(words)] = words
             registers[cfg.status_address - start] = status.word
             registers[cfg.status_address + 1 - start] = min(self._trips, 0xFFFF)
+            if cfg.probes is not None:
+                first = cfg.probes.address - start
+                for k, w in enumerate(self._probe_words):
+                    if 0 <= first + k < len(registers):
+                        registers[first + k] = w
