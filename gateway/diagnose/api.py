@@ -13,12 +13,14 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
 from gateway import __version__
+from gateway.diagnose.adequacy import Adequacy, assess
+from gateway.diagnose.compare import Comparison, HeldMetrics, compare
 from gateway.diagnose.data import Stack, build_stack
 from gateway.diagnose.extend import extend_model
 from gateway.diagnose.hypotheses import FactorInfo, Hypothesis, catalogue
@@ -40,9 +42,9 @@ from gateway.diagnose.locate import (
     operating_states,
     spectral_lines,
 )
+from gateway.diagnose.refit import Reidentified, path_corrections, reidentify
 from gateway.diagnose.search import Options, SearchResult, search
 from gateway.diagnose.select import make_blocks
-from gateway.estimate import error_figures
 from gateway.model.model import ThermalModel
 from gateway.profile import Profile
 from gateway.recording import Recording
@@ -63,35 +65,34 @@ class AxisFindings:
     correlations: list[Correlation]
 
 
-@dataclass(frozen=True, kw_only=True)
-class HeldMetrics:
-    """Held-out errors of one axis: RMS, max |error|, peak |displacement|, max error as % of peak."""
-
-    axis: str
-    windows: int
-    rms_um: float
-    max_abs_error_um: float
-    peak_um: float
-    max_error_pct_of_peak: float
-
-
 @dataclass(kw_only=True)
 class Diagnosis:
     """Everything diagnosis found: findings per axis, every hypothesis tried, the extended model."""
 
     model: ThermalModel
-    extended: ThermalModel
+    extended: ThermalModel  # the model diagnosis writes: the best candidate that passes (else the model itself)
     stack: Stack
     findings: dict[str, AxisFindings]
     hypotheses: list[Hypothesis]
     result: SearchResult
     options: Options
-    before: dict[str, HeldMetrics]
-    after: dict[str, HeldMetrics]
-    after_physics: dict[str, HeldMetrics]
+    adequacy: Adequacy
+    comparison: Comparison
+    reidentified: Reidentified | None
+    block: np.ndarray
     conclusions: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     wall_s: float = 0.0
+
+    @property
+    def before(self) -> dict[str, HeldMetrics]:
+        """Held-out errors of the identified model as it is."""
+        return self.comparison.candidates["identified"].metrics
+
+    @property
+    def after(self) -> dict[str, HeldMetrics]:
+        """Held-out errors of the written model (the identified one when nothing passed)."""
+        return self.comparison.written.metrics
 
     @property
     def accepted_physics(self) -> list[str]:
@@ -104,6 +105,10 @@ class Diagnosis:
         out = [f"step {s.size_um:+.3g} um on {s.axis} at {s.time_h:.2f} h ({s.recording})"
                for f in self.findings.values() for s in f.steps]
         return out + [t.hypothesis.key for t in self.result.accepted if t.hypothesis.artefact]
+
+
+#: days of recordings a daily cycle needs before it can be told from the schedule and a drift
+DAYS_FOR_DAILY = 3.0
 
 
 def factor_infos(profile: Profile) -> list[FactorInfo]:
@@ -139,50 +144,84 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
                 axis=a, residual=r, noise=noise, windows=located_windows(stack, r_clean, noise), steps=steps,
                 change_points=change_points(stack, r_clean), states=operating_states(stack, r_clean),
                 lines=spectral_lines(stack, r_clean), correlations=correlations(stack, r_clean, signals))
+        adequacy = assess(stack, model, {a: f.noise.sigma_um for a, f in findings.items()})
         measured = np.isfinite(stack.y).any(axis=0)
         block = make_blocks(stack.bounds, measured, options.blocks)
         hyps = catalogue(stack, model, infos, families=families)
-        result = search(stack, hyps, block=block, artefacts=artefacts, options=options, progress=progress)
-    on = [(t, f"{t.hypothesis.key} on {', '.join(t.axes)}") for t in result.accepted]
-    info = {"diagnosis": {
-        "cncgw_version": __version__, "recordings": list(stack.names),
-        "accepted": [text for t, text in on if not t.hypothesis.artefact],
-        "artefacts_excluded": [text for t, text in on if t.hypothesis.artefact]
-        + [f"step on {s.axis} at {s.time_h:.2f} h in {s.recording}" for f in findings.values() for s in f.steps],
-    }}
-    extended = extend_model(model, result.terms, info=info)
-    before, after, physics = {}, {}, {}
-    for a, h in result.held.items():
-        i = model.axes.index(a)
-        meas = stack.y[i][h.rows]
-        r = meas - stack.base[i][h.rows]
-        ok = h.block >= 0
-        before[a] = _metrics(a, r[ok] - h.before[ok], meas[ok] - h.before[ok])
-        after[a] = _metrics(a, r[ok] - h.after[ok], meas[ok] - h.before[ok])
-        physics[a] = _metrics(a, r[ok] - h.physics[ok], meas[ok] - h.before[ok])
+        corrections = path_corrections(stack, model) if options.reidentify else []
+        result = search(stack, hyps, block=block, artefacts=artefacts, options=options, corrections=corrections,
+                        progress=progress)
+        on = [(t, f"{t.hypothesis.key} on {', '.join(t.axes)}") for t in result.accepted]
+        record = {"cncgw_version": __version__, "recordings": list(stack.names),
+                  "accepted": [text for t, text in on if not t.hypothesis.artefact],
+                  "artefacts_excluded": [text for t, text in on if t.hypothesis.artefact]
+                  + [f"step on {s.axis} at {s.time_h:.2f} h in {s.recording}"
+                     for f in findings.values() for s in f.steps]}
+        frozen = extend_model(model, result.terms, info={"diagnosis": {**record, "written": "terms"}})
+        reid = None
+        if options.reidentify:
+            reid = reidentify(stack, model, result.accepted, artefacts=artefacts, progress=progress)
+        comparison = compare(stack, model, block, result, frozen, reid, artefacts=artefacts, options=options)
+    written = comparison.written
+    extended = written.model
+    if written.key == "reidentified" and reid is not None:
+        extended = replace(extended, info={**extended.info, "diagnosis": {**record, "written": "reidentified"}})
+    elif written.key == "identified":
+        extended = replace(model, info={**model.info, "diagnosis": {**record, "written": "identified"}})
     diag = Diagnosis(model=model, extended=extended, stack=stack, findings=findings, hypotheses=hyps, result=result,
-                     options=options, before=before, after=after, after_physics=physics, notes=list(stack.notes))
+                     options=options, adequacy=adequacy, comparison=comparison, reidentified=reid, block=block,
+                     notes=list(stack.notes))
     diag.conclusions = conclusions(diag, block)
     diag.wall_s = time.perf_counter() - t0
     return diag
 
 
-def _metrics(axis: str, err: np.ndarray, measured: np.ndarray) -> HeldMetrics:
-    """Errors on the held-out windows; the peak is the measured displacement's (offset removed)."""
-    return HeldMetrics(axis=axis, **error_figures(err, measured))
-
-
 def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
-    """What can and cannot be concluded from these recordings, in plain sentences."""
+    """What can and cannot be concluded from these recordings, in plain sentences, the verdict first."""
     st = d.stack
-    out = []
+    out = list(d.adequacy.lines())
+    physics = [t for t in d.result.accepted if not t.hypothesis.artefact]
+    cands = d.comparison.candidates
+    written = d.comparison.written
+    for t in physics:
+        gain = ", ".join(f"{a} {100 * t.evidence[a].gain:.0f} %" for a in t.axes)
+        out.append(f"missing physics: {t.hypothesis.title} (held-out squared error down {gain} with every path "
+                   "refitted beside it)" if d.options.reidentify else
+                   f"missing physics: {t.hypothesis.title} (held-out squared error down {gain})")
+    for c in cands.values():
+        if c.key == "identified":
+            continue
+        rms = ", ".join(f"{a} {cands['identified'].metrics[a].rms_um:.3g} -> {m.rms_um:.3g} um"
+                        for a, m in c.metrics.items())
+        out.append(f"{c.title}: held-out RMS {rms}; {c.verdict}")
+    if written.key == "identified":
+        if not d.adequacy.fit:
+            out.append("no hypothesis and no re-identification made the model fit for compensation on these "
+                       "recordings: do not compensate with it; record what else acts (the room's temperature, the "
+                       "coolant's), or longer, and diagnose again")
+        elif not physics:
+            out.append("nothing significant is missing: no physical hypothesis lowered the held-out error "
+                       "significantly (family-wise) and by a relevant amount, and re-identifying on all recordings "
+                       "does not predict better")
+    elif not physics:
+        out.append("no missing physics is named, but the model identified again on all recordings predicts the "
+                   "held-out blocks better: the identification experiments did not pin its paths down (too little "
+                   "excitation, or a disturbance during them); the re-identified model is written")
+    if not physics:
+        tried = [t for t in d.result.trials if t.round == 1 and not t.hypothesis.artefact]
+        # ranked by evidence; "closest" only for one that predicted the held-out blocks better than nothing
+        better = [t for t in tried if sum(e.sse_after for e in t.evidence.values())
+                  < sum(e.sse_before for e in t.evidence.values())]
+        best = min(better, key=lambda t: (t.p_holm, -t.score), default=None)
+        if best is not None:
+            out.append(f"closest candidate: {best.hypothesis.title}: {best.verdict}")
     span_h = max(b - a for a, b in st.bounds) * st.dt_s / 3600.0
     total_h = st.n * st.dt_s / 3600.0
     k = int(block.max()) + 1 if (block >= 0).any() else 0
     block_h = float(np.sum(block >= 0)) * st.dt_s / 3600.0 / max(k, 1)
     out.append(f"{len(st.names)} recording(s), {total_h:.1f} h in all (longest {span_h:.1f} h); judged on {k} "
-               f"held-out blocks of about {block_h:.1f} h (the first block of each recording only fits the "
-               "initial state)")
+               f"held-out blocks of about {block_h:.1f} h (the first block of each recording only fits the initial "
+               "state)")
     if k < 6:
         out.append(f"only {k} held-out blocks: the tests have little power; record longer to conclude more")
     moving = [f for f in st.factors if np.nanmax(np.abs(st.du[f])) > 0] if st.factors else []
@@ -193,9 +232,11 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
         out.append("every factor rises (or falls) and settles once, like a single warm-up: the dynamics are "
                    "weakly identified, held-out blocks test extrapolation in time only, and a slow mode cannot "
                    "be told from a drift")
-    if span_h < 36:
-        out.append(f"the longest recording is {span_h:.0f} h: a daily cycle cannot be told apart from a slow "
-                   "drift or from the work schedule; record over several days, including an idle one")
+    days = total_h / 24.0
+    if not any(t.hypothesis.family == "room_daily" for t in physics) and days < DAYS_FOR_DAILY:
+        out.append(f"these recordings span {days:.1f} day(s) in all: a daily cycle (the room) needs at least "
+                   f"{DAYS_FOR_DAILY:g} days, including an idle one, to be told from the work schedule and from a "
+                   "slow drift")
     for a, f in d.findings.items():
         if f.noise.quantum_um > 0:
             out.append(f"axis {a}: the displacement is quantised in steps of {f.noise.quantum_um:.3g} um "
@@ -203,22 +244,8 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
     used = set(d.model.info.get("experiments", []) or [])
     seen = [n for n in st.names if n in used]
     if seen:
-        out.append(f"{', '.join(seen)} (or part of it) identified the model: there the residual is a fit residual, "
-                   "not a test; diagnose on recordings the model has not seen")
-    physics = [t for t in d.result.accepted if not t.hypothesis.artefact]
-    if not physics:
-        artefacts = [t for t in d.result.accepted if t.hypothesis.artefact]
-        out.append("nothing significant is missing: no physical hypothesis lowered the held-out error "
-                   "significantly (family-wise) and by a relevant amount"
-                   + (" (what differs is a measurement artefact, below)" if artefacts else ""))
-        tried = [t for t in d.result.trials if t.round == 1 and not t.hypothesis.artefact]
-        best = min(tried, key=lambda t: (t.p_holm, -t.score), default=None)
-        if best is not None:
-            out.append(f"closest candidate: {best.hypothesis.title}: {best.verdict}")
-    else:
-        for t in physics:
-            gain = ", ".join(f"{a} {100 * t.evidence[a].gain:.0f} %" for a in t.axes)
-            out.append(f"missing physics: {t.hypothesis.title} (held-out squared error down {gain})")
+        out.append(f"{', '.join(seen)} identified the model: there its error is a fit residual, not a test; they "
+                   "still inform the re-identification and the hypotheses' fits")
     for t in d.result.accepted:
         rivals = [r.hypothesis.title for r in d.result.trials
                   if r.round == t.round and r is not t and r.verdict.startswith("passes")]

@@ -45,6 +45,9 @@ class Component:
 
     parts: tuple[Part, ...]
     label: str = ""
+    #: the gain of an identified path itself (the input whose path it scales): a re-identification refits
+    #: that path anyway, so it drops such a component
+    corrects: str = ""
 
 
 def lag(tau_s: float) -> tuple[Term, ...]:
@@ -159,14 +162,22 @@ class Stack:
             cols.append(c)
         return cols
 
-    def ramps(self) -> list[np.ndarray]:
-        """Hours since each recording's start (a sensor's linear drift)."""
+    def ramps(self, tau_s: float = 0.0) -> list[np.ndarray]:
+        """Hours since each recording's start (a sensor's linear drift), through a lag of ``tau_s`` if > 0.
+
+        Through a lag: the machine's answer to a slow change of its surroundings (the weather moving the
+        room's mean) that began with the recording, as the structure's thermal mass smooths it.
+        """
+        key = ("ramps", tau_s)
+        if key in self._cache:
+            return self._cache[key]  # type: ignore[return-value]
         t = self.rel_time_s() / 3600.0
         cols = []
         for a, b in self.bounds:
             c = np.zeros(self.n)
             c[a:b] = t[a:b]
-            cols.append(c)
+            cols.append(self.response(c, lag(tau_s)) if tau_s > 0 else c)
+        self._cache[key] = cols
         return cols
 
 

@@ -71,7 +71,8 @@ class Setting:
     params: tuple[tuple[str, float | str], ...]
     components: tuple[Component, ...]
     chain: tuple[DerivedInput, ...] = ()
-    #: nuisance columns: ("decay", tau_s) unknown initial state of a mode, ("ramp", 0) a sensor's drift
+    #: nuisance columns: ("decay", tau_s) unknown initial state of a mode, ("ramp", 0) a sensor's drift,
+    #: ("ramp", tau_s) a slow drift of the surroundings through a lag, one per recording
     nuisance: tuple[tuple[str, float], ...] = ()
     #: required sign of each component's gain (+1, -1; 0: any)
     signs: tuple[int, ...] = ()
@@ -248,15 +249,21 @@ def _room_daily(ctx: _Ctx) -> list[Hypothesis]:
     s = Periodic(name="day_sin", period_s=DAY_S, phase="sin", note="time of day (daily room cycle)")
     c = Periodic(name="day_cos", period_s=DAY_S, phase="cos", note="time of day (daily room cycle)")
     static = (FirstOrder(gain=1.0, tau_s=STATIC_TAU_S),)
-    setting = Setting(params=(("period_h", 24.0),), chain=(s, c),
-                      components=(Component((Part(s.name, static),), "sin"),
-                                  Component((Part(c.name, static),), "cos")))
+    comps = (Component((Part(s.name, static),), "sin"), Component((Part(c.name, static),), "cos"))
+    # the room's mean moves with the weather too: a drift of its own in every recording, through the lag of
+    # the structure, which no recording's neighbour predicts (a nuisance: fitted, never written)
+    grid = [Setting(params=(("period_h", 24.0), ("drift_tau_s", "none")), chain=(s, c), components=comps)]
+    grid += [Setting(params=(("period_h", 24.0), ("drift_tau_s", tau)), chain=(s, c), components=comps,
+                     nuisance=(("ramp", tau),)) for tau in (0.0, 4 * 3600.0, 12 * 3600.0)]
     return [Hypothesis(
         key="room_daily", family="room_daily", title="daily room-temperature cycle (not recorded)",
         explanation=("The workshop warms by day and cools by night; without a thermometer the model can "
                      "still take it as a 24 h periodic disturbance: in its periodic steady state any lag "
-                     "only shifts the phase, so a sine and a cosine of the time of day describe it."),
-        settings={a: [setting] for a in ctx.axes})]
+                     "only shifts the phase, so a sine and a cosine of the time of day describe it. The "
+                     "room's mean drifts with the weather as well, differently every day: that part is "
+                     "fitted per recording (a drift through the structure's lag) and cannot be predicted "
+                     "without a thermometer."),
+        settings={a: grid for a in ctx.axes})]
 
 
 def _motor_shapes(ctx: _Ctx, axis: str, speed: str, *, stator_only: bool = False) -> list[str]:
@@ -413,7 +420,7 @@ def _extra_mode(ctx: _Ctx, f: str, taus: Sequence[float]) -> dict[str, list[Sett
         for tau in taus:
             comps = [Component((Part(f, lag(tau)),), f"mode {_tau_text(tau)}")]
             if base:
-                comps.insert(0, Component((Part(f, base),), "gain correction"))
+                comps.insert(0, Component((Part(f, base),), "gain correction", corrects=f))
             grid.append(Setting(params=(("tau_s", tau),), components=tuple(comps),
                                 limits=(1.0, math.inf) if base else (math.inf,)))
         settings[a] = grid
@@ -454,14 +461,14 @@ def _dead_time(ctx: _Ctx) -> list[Hypothesis]:
             for d, (params, terms), label in late:
                 comps = [Component((Part(f, terms, d[0][1]),), label)]
                 if base:
-                    comps.insert(0, Component((Part(f, base),), "gain correction"))
+                    comps.insert(0, Component((Part(f, base),), "gain correction", corrects=f))
                 grid.append(Setting(params=(*d, *params), components=tuple(comps),
                                     limits=(1.0, math.inf) if base else (math.inf,)))
             for d in sorted({d[0][1] for d, _, _ in late}):
                 if base:  # a share of the identified path itself arrives late
                     grid.append(Setting(params=(("delay_s", d), ("tau_s", "path")),
                                         components=(Component((Part(f, base, d),), "delayed share"),
-                                                    Component((Part(f, base),), "gain correction")),
+                                                    Component((Part(f, base),), "gain correction", corrects=f)),
                                         limits=(1.5, 1.5)))
             settings[a] = grid
         out.append(Hypothesis(

@@ -41,6 +41,10 @@ class Options:
     min_effect_um: float = 0.0  # ... and at least this many micrometres
     blocks: int = 16
     max_rounds: int = 4
+    #: judge every hypothesis with all the model's paths refitted beside it (re-identification), not only as
+    #: a term on top of the frozen model: when the missing physics also shaped the identification runs,
+    #: the paths are wrong and no added term can repair them
+    reidentify: bool = True
 
 
 @dataclass(kw_only=True)
@@ -133,7 +137,7 @@ def setting_columns(stack: Stack, setting: Setting) -> tuple[list[np.ndarray], l
     phys = [stack.column(c, setting.chain) for c in setting.components]
     nuis: list[np.ndarray] = []
     for kind, value in setting.nuisance:
-        nuis += stack.decays(value) if kind == "decay" else stack.ramps()
+        nuis += stack.decays(value) if kind == "decay" else stack.ramps(value)
     return phys, nuis
 
 
@@ -158,12 +162,31 @@ class _Axis:
     fixed: list[np.ndarray]
     relevance_um: float
     artefacts: list[np.ndarray]
+    _fold: Fold | None = None
+
+    @property
+    def fold(self) -> Fold:
+        """The cross-validation design of the current fixed columns (built once a round)."""
+        if self._fold is None:
+            self._fold = Fold(r=self.r, block=self.block, fixed=np.column_stack(self.fixed))
+        return self._fold
+
+    def fix(self, cols: Sequence[np.ndarray]) -> None:
+        """Columns every later fit carries (an accepted hypothesis)."""
+        self.fixed += list(cols)
+        self._fold = None
 
 
 def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
            artefacts: dict[str, list[np.ndarray]], options: Options,
+           corrections: Sequence[np.ndarray] = (),
            progress: Callable[[str], None] | None = None) -> SearchResult:
-    """Forward selection over all axes; ``block`` gives each window's block (-1: not used)."""
+    """Forward selection over all axes; ``block`` gives each window's block (-1: not used).
+
+    ``corrections``: columns (every window of the stack) whose gains every fit carries beside the
+    hypothesis, in and out of it alike: the model's paths refitted (see :func:`path_corrections`), so a
+    hypothesis is judged by what it adds to a re-identified model.
+    """
     axes: list[_Axis] = []
     offsets = stack.per_recording()
     # relevance is judged against the machine's thermal displacement, the largest peak of any axis: an
@@ -183,6 +206,7 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
         r = (stack.y[i] - stack.base[i])[rows]
         arts = [c for c in artefacts.get(name, [])]
         fixed = [c[rows] for c in offsets if np.any(c[rows])] + [c[rows] for c in arts]
+        fixed += [c[rows] for c in corrections if np.any(c[rows])]
         axes.append(_Axis(i, name, rows, r, block[rows], fixed, relevance, arts))
     trials: list[Trial] = []
     accepted: list[Trial] = []
@@ -219,7 +243,7 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
             e = chosen.evidence.get(ax.name)
             if e is not None and e.included and e.setting is not None:
                 phys, nuis = setting_columns(stack, e.setting)
-                ax.fixed += [c[ax.rows] for c in phys + nuis]
+                ax.fix([c[ax.rows] for c in phys + nuis])
         remaining = [h for h in remaining if h is not chosen.hypothesis]
     held = {ax.name: _held(stack, ax, offsets, accepted) for ax in axes}
     terms = {ax.name: _final_terms(stack, ax, offsets, accepted) for ax in axes}
@@ -255,9 +279,8 @@ def _evidence(stack: Stack, axes: Sequence[_Axis], h: Hypothesis) -> dict[str, A
     """Cross-validate ``h`` on every axis, machine-wide parameters chosen jointly over the axes."""
     scores = {}
     for ax in axes:
-        fold = Fold(r=ax.r, block=ax.block, fixed=np.column_stack(ax.fixed))
         designs = [_design(stack, s, ax.rows) for s in h.settings[ax.name]]
-        scores[ax.name] = grid_scores(fold, [d[0] for d in designs], signs=[d[1] for d in designs],
+        scores[ax.name] = grid_scores(ax.fold, [d[0] for d in designs], signs=[d[1] for d in designs],
                                       limits=[d[2] for d in designs])
     keys = None
     if h.shared:

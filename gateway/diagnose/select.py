@@ -75,9 +75,20 @@ class Fold:
         scale[scale == 0] = 1.0
         self.fixed_scale = scale
         self.F = fixed / scale
-        self.FF = self.sums(self.F[:, :, None] * self.F[:, None, :])
+        q = self.F.shape[1]
+        self.FF = np.zeros((self.k + 1, q, q))
+        for a, b, j in zip(self.starts, self.stops, self.slot, strict=True):
+            self.FF[j] += self.F[a:b].T @ self.F[a:b]
         self.Fr = self.sums(self.F * r[:, None])
         self.rr = self.sums(r * r)
+        self._solver: _FixedSolve | None = None
+
+    @property
+    def solver(self) -> _FixedSolve:
+        """The fixed columns' normal equations, factorised once for every setting scored on this fold."""
+        if self._solver is None:
+            self._solver = _FixedSolve(self)
+        return self._solver
 
     def sums(self, rows: np.ndarray) -> np.ndarray:
         """Per-block sums of ``rows`` (first axis: windows) into K + 1 slots (the last: burn-in)."""
@@ -113,40 +124,70 @@ class GridScores:
     without: np.ndarray  # (K,) held-out SSE without the hypothesis
 
 
-def _grams(fold: Fold, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per-block (G_b, h_b, s_b) of the scaled design [fixed, X] and the scale (slot K: burn-in rows)."""
-    F = fold.F
-    q, p = F.shape[1], X.shape[1]
-    xs = np.sqrt(np.einsum("ij,ij->j", X, X)) if p else np.zeros(0)
+def _run_sums(fold: Fold, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per-slot sums X'F, X'X, X'r of the scaled regressors ``X`` (slot K: burn-in rows), and X's scale."""
+    q, p = fold.F.shape[1], X.shape[1]
+    xs = np.sqrt(np.einsum("ij,ij->j", X, X))
     xs[xs == 0] = 1.0
-    scale = np.concatenate([fold.fixed_scale, xs])
-    G = np.zeros((fold.k + 1, q + p, q + p))
-    h = np.zeros((fold.k + 1, q + p))
-    G[:, :q, :q] = fold.FF
-    h[:, :q] = fold.Fr
-    if p:
-        Xs = X / xs
-        # one matrix product per contiguous run of a block: wide designs (a decay per recording) stay cheap
-        for a, b, j in zip(fold.starts, fold.stops, fold.slot, strict=True):
-            Xb = Xs[a:b]
-            XF = Xb.T @ F[a:b]
-            G[j, q:, :q] += XF
-            G[j, :q, q:] += XF.T
-            G[j, q:, q:] += Xb.T @ Xb
-            h[j, q:] += Xb.T @ fold.r[a:b]
-    return G, h, fold.rr.copy(), scale
+    Xs = X / xs
+    XF = np.zeros((fold.k + 1, p, q))
+    XX = np.zeros((fold.k + 1, p, p))
+    Xr = np.zeros((fold.k + 1, p))
+    # one matrix product per contiguous run of a block: wide fixed designs stay cheap
+    for a, b, j in zip(fold.starts, fold.stops, fold.slot, strict=True):
+        Xb = Xs[a:b]
+        XF[j] += Xb.T @ fold.F[a:b]
+        XX[j] += Xb.T @ Xb
+        Xr[j] += Xb.T @ fold.r[a:b]
+    return XF, XX, Xr, xs
 
 
-def _folds(G: np.ndarray, h: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, ...]:
-    """(all-data G, h, s; training G, h, s per held-out block; held-out G, h, s per block)."""
-    Gt, ht, st = G.sum(0), h.sum(0), s.sum()
-    return Gt, ht, st, Gt - G[:-1], ht - h[:-1], st - s[:-1], G[:-1], h[:-1], s[:-1]
+class _FixedSolve:
+    """The fixed columns' normal equations, per fold and on all data, factorised once.
+
+    A setting's regressors X are then solved by the Schur complement of the fixed block,
+    S = X'X - X'F (F'F)^-1 F'X: a solve of the size of X per fold, however many fixed columns every fit
+    carries (offsets, artefacts, the paths' corrections).
+    """
+
+    def __init__(self, fold: Fold) -> None:
+        q = fold.F.shape[1]
+        eye = np.eye(q) * RIDGE
+        self.FF_all, self.Fr_all, self.rr_all = fold.FF.sum(0), fold.Fr.sum(0), float(fold.rr.sum())
+        self.FF_tr = self.FF_all - fold.FF[:-1]
+        self.Fr_tr = self.Fr_all - fold.Fr[:-1]
+        self.rr_tr = self.rr_all - fold.rr[:-1]
+        self.inv_all = np.linalg.inv(self.FF_all + eye)
+        self.inv_tr = np.linalg.inv(self.FF_tr + eye)
+        self.b_all = self.inv_all @ self.Fr_all
+        self.b_tr = np.einsum("kij,kj->ki", self.inv_tr, self.Fr_tr)
+        self.fold = fold
+        #: held-out SSE per block with the fixed columns alone
+        self.without = _quad(fold.FF[:-1], fold.Fr[:-1], fold.rr[:-1], self.b_tr)
+
+    def solve(self, XF: np.ndarray, XX: np.ndarray, Xr: np.ndarray) -> tuple[np.ndarray, ...]:
+        """(beta_F, beta_X per fold; beta_F, beta_X on all data) for per-slot sums of a setting."""
+        p = XX.shape[-1]
+        eye = np.eye(p) * RIDGE
+        XF_all, XX_all, Xr_all = XF.sum(0), XX.sum(0), Xr.sum(0)
+        XF_tr, XX_tr, Xr_tr = XF_all - XF[:-1], XX_all - XX[:-1], Xr_all - Xr[:-1]
+        A = XF_tr @ self.inv_tr  # (K, p, q)
+        S = XX_tr - A @ np.swapaxes(XF_tr, 1, 2)
+        rhs = Xr_tr - np.einsum("kpq,kq->kp", A, self.Fr_tr)
+        bX = np.linalg.solve(S + eye, rhs[..., None])[..., 0]
+        bF = self.b_tr - np.einsum("kpq,kp->kq", A, bX)
+        A1 = XF_all @ self.inv_all
+        bX1 = np.linalg.solve(XX_all - A1 @ XF_all.T + eye, Xr_all - A1 @ self.Fr_all)
+        bF1 = self.b_all - A1.T @ bX1
+        return bF, bX, bF1, bX1
 
 
-def _solve(G: np.ndarray, h: np.ndarray) -> np.ndarray:
-    m = G.shape[-1]
-    eye = np.eye(m) * RIDGE
-    return np.linalg.solve(G + eye, h[..., None])[..., 0]
+def _sse(FF: np.ndarray, Fr: np.ndarray, rr: np.ndarray, XF: np.ndarray, XX: np.ndarray, Xr: np.ndarray,
+         bF: np.ndarray, bX: np.ndarray) -> np.ndarray:
+    """SSE of r - F bF - X bX from Gram quantities (leading axes broadcast)."""
+    return (rr - 2 * (np.einsum("...i,...i->...", bF, Fr) + np.einsum("...i,...i->...", bX, Xr))
+            + np.einsum("...i,...ij,...j->...", bF, FF, bF) + 2 * np.einsum("...p,...pq,...q->...", bX, XF, bF)
+            + np.einsum("...i,...ij,...j->...", bX, XX, bX))
 
 
 def _quad(G: np.ndarray, h: np.ndarray, s: np.ndarray, beta: np.ndarray) -> np.ndarray:
@@ -169,26 +210,31 @@ def grid_scores(fold: Fold, designs: Sequence[np.ndarray], *, signs: Sequence[np
     full = np.full(n_grid, np.inf)
     gains_f: list[np.ndarray] = []
     gains_a: list[np.ndarray] = []
-    q = fold.F.shape[1]
-    _, _, _, G0tr, h0tr, _, G0, h0, s0 = _folds(*_grams(fold, np.zeros((len(fold.r), 0)))[:3])
-    without = _quad(G0, h0, s0, _solve(G0tr, h0tr))
+    fs = fold.solver
     for g, X in enumerate(designs):
-        G4, h4, s4, scale = _grams(fold, X)
-        Gt, ht, st, Gtr, htr, s_tr, G, h, s = _folds(G4, h4, s4)
-        beta_all = _solve(Gt, ht)
-        beta = _solve(Gtr, htr)  # (K, m)
-        gf = beta[:, q:] / scale[q:]
-        ga = beta_all[q:] / scale[q:]
+        if X.shape[1] == 0:  # nothing but nuisance: the fixed fit itself
+            train[g] = _quad(fs.FF_tr, fs.Fr_tr, fs.rr_tr, fs.b_tr)
+            held[g] = fs.without
+            full[g] = float(_quad(fs.FF_all, fs.Fr_all, fs.rr_all, fs.b_all))
+            gains_f.append(np.zeros((k, 0)))
+            gains_a.append(np.zeros(0))
+            continue
+        XF, XX, Xr, xs = _run_sums(fold, X)
+        bF, bX, bF1, bX1 = fs.solve(XF, XX, Xr)
+        gf = bX / xs
+        ga = bX1 / xs
         sg = signs[g] if signs else None
         lim = limits[g] if limits else None
         ok_f = _admissible(gf, sg, lim)
         ok_a = _admissible(ga[None, :], sg, lim)[0]
-        train[g] = np.where(ok_f, _quad(Gtr, htr, s_tr, beta), np.inf)
-        held[g] = _quad(G, h, s, beta)
-        full[g] = float(_quad(Gt, ht, st, beta_all)) if ok_a else np.inf
+        XF_all, XX_all, Xr_all = XF.sum(0), XX.sum(0), Xr.sum(0)
+        tr = _sse(fs.FF_tr, fs.Fr_tr, fs.rr_tr, XF_all - XF[:-1], XX_all - XX[:-1], Xr_all - Xr[:-1], bF, bX)
+        train[g] = np.where(ok_f, tr, np.inf)
+        held[g] = _sse(fold.FF[:-1], fold.Fr[:-1], fold.rr[:-1], XF[:-1], XX[:-1], Xr[:-1], bF, bX)
+        full[g] = float(_sse(fs.FF_all, fs.Fr_all, fs.rr_all, XF_all, XX_all, Xr_all, bF1, bX1)) if ok_a else np.inf
         gains_f.append(gf)
         gains_a.append(ga)
-    return GridScores(train=train, held=held, full=full, gains_fold=gains_f, gains_all=gains_a, without=without)
+    return GridScores(train=train, held=held, full=full, gains_fold=gains_f, gains_all=gains_a, without=fs.without)
 
 
 def choose(scores: dict[str, GridScores], keys: dict[str, Sequence[object]] | None = None) -> dict[str, GridFit]:
@@ -297,3 +343,17 @@ def jackknife_sd(values: np.ndarray) -> np.ndarray:
     if k < 2:
         return np.full(v.shape[1:], math.nan)
     return np.sqrt((k - 1) / k * np.sum((v - v.mean(axis=0)) ** 2, axis=0))
+
+
+def held_out(target: np.ndarray, block: np.ndarray, columns: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(predictions of ``target`` on each held-out block from the other blocks, held-out SSE per block).
+
+    ``columns`` are the regressors whose gains every fold refits; burn-in rows always train and get NaN.
+    """
+    fold = Fold(r=target, block=block, fixed=np.column_stack(list(columns)))
+    fs = fold.solver
+    pred = np.full(len(target), np.nan)
+    for f in range(fold.k):
+        rows = block == f
+        pred[rows] = fold.F[rows] @ fs.b_tr[f]
+    return pred, fs.without

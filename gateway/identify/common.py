@@ -39,6 +39,10 @@ class ExperimentSet:
     y: np.ndarray  # (A, E, N)
     lengths: np.ndarray  # (E,)
     u0: np.ndarray  # (E, F) initial factor levels
+    #: regressors that enter every axis linearly beside the paths, (C, E, N): a disturbance's known shape
+    #: (a daily harmonic, a per-experiment drift) or a term whose time constants are fixed
+    extra: np.ndarray | None = None
+    extra_names: tuple[str, ...] = ()
 
     @classmethod
     def from_prepared(cls, exps: Sequence[Prepared], *, factors: Sequence[str], axes: Sequence[str]) -> ExperimentSet:
@@ -62,6 +66,10 @@ class ExperimentSet:
     @property
     def n_exp(self) -> int:
         return self.du.shape[1]
+
+    @property
+    def n_extra(self) -> int:
+        return 0 if self.extra is None else self.extra.shape[0]
 
     def valid(self, axis: int) -> np.ndarray:
         return np.isfinite(self.y[axis])

@@ -56,6 +56,7 @@ class AxisFit:
     gains: list[np.ndarray]
     offsets: np.ndarray
     rss: float
+    extra_gains: np.ndarray = field(default_factory=lambda: np.zeros(0))  # of the set's extra columns
     n: int
     nfev: int = 0
     converged: bool = True  # False when the optimizer stopped at its evaluation budget
@@ -66,7 +67,7 @@ class AxisFit:
     @property
     def k(self) -> int:
         """Number of fitted parameters, offsets included."""
-        return (sum(n_nonlinear(s) + n_linear(s) for s in self.structures)) + len(self.offsets)
+        return (sum(n_nonlinear(s) + n_linear(s) for s in self.structures)) + len(self.offsets) + len(self.extra_gains)
 
     @property
     def rms(self) -> float:
@@ -80,6 +81,17 @@ class AxisFit:
             sd = self.sd[j] if self.sd else {}
             out.append(PathTF(axis=self.axis, factor=f, terms=terms, sd=sd))
         return out
+
+
+def _length_groups(rows: np.ndarray, lengths: np.ndarray) -> list[np.ndarray]:
+    """``rows`` in groups whose lengths are within a factor 2: each group is filtered over its longest."""
+    groups: list[list[int]] = []
+    for r in sorted(rows.tolist(), key=lambda r: lengths[r]):
+        if groups and lengths[r] <= 2 * lengths[groups[-1][0]]:
+            groups[-1].append(r)
+        else:
+            groups.append([r])
+    return [np.array(g) for g in groups]
 
 
 def _split(v: np.ndarray, sizes: Sequence[int]) -> list[np.ndarray]:
@@ -101,7 +113,8 @@ class AxisProblem:
     that owns theta_q, so a Jacobian costs one extra filter per parameter instead of a whole design matrix.
     """
 
-    def __init__(self, es: ExperimentSet, axis_index: int) -> None:
+    def __init__(self, es: ExperimentSet, axis_index: int, *,
+                 input_bounds: Sequence[Bounds | None] | None = None) -> None:
         self.es = es
         self.i = axis_index
         self.valid = es.valid(axis_index)
@@ -109,6 +122,9 @@ class AxisProblem:
         self.n = int(self.y.size)
         if self.n == 0:
             raise ValueError("no measured displacement on this axis")
+        # the set's extra regressors ride along with the path columns in every solve
+        self.extra = (np.column_stack([c[self.valid] for c in es.extra]) if es.n_extra
+                      else np.zeros((self.n, 0)))
         exp_idx = np.broadcast_to(np.arange(es.n_exp)[:, None], self.valid.shape)[self.valid]
         self.offset_cols = (exp_idx[:, None] == np.arange(es.n_exp)[None, :]).astype(float)
         # rows run experiment by experiment: the offsets are projected out by removing each experiment's
@@ -118,33 +134,41 @@ class AxisProblem:
         self._y_means = self._group_means(self.y[:, None])[:, 0]
         self.y_demeaned = self.y - np.repeat(self._y_means, self._counts[self._counts > 0])
         self.bounds = Bounds.for_data(es.dt_s, es.longest_s)
+        #: per input, where its time constants may go (default: the data's bounds)
+        self.input_bounds = [b or self.bounds for b in (input_bounds or [None] * len(es.factors))]
         self.evaluations = 0
         # the racing restarts an optimizer where the last one stopped: its first residual and Jacobian
         # were computed at the end of the round before (a few entries, each a design matrix's worth)
         self._memo: OrderedDict[tuple, object] = OrderedDict()
-        # per factor: the experiments in which it moves, and where their valid samples go in a column
+        # per factor: the experiments in which it moves, in groups of similar length (a 12 h experiment is not
+        # filtered over the padding up to a 4-day production recording), and where their valid samples go
         position = np.full(self.valid.shape, -1)
         position[self.valid] = np.arange(self.n)
-        self._moving = []
+        self._moving: list[list[tuple[np.ndarray, int, np.ndarray, np.ndarray]]] = []
         for j in range(len(es.factors)):
             rows = np.flatnonzero(np.any(es.du[j] != 0.0, axis=1))
-            self._moving.append((rows, np.flatnonzero(self.valid[rows]), position[rows][self.valid[rows]]))
+            groups = []
+            for g in _length_groups(rows, es.lengths):
+                length = int(es.lengths[g].max())
+                valid = self.valid[g, :length]
+                groups.append((g, length, np.flatnonzero(valid), position[g, :length][valid]))
+            self._moving.append(groups)
 
     # -- the design matrix and the projected residual --------------------------------------------------
     def path_columns(self, j: int, structure: str, theta: Sequence[float]) -> list[np.ndarray]:
         # a factor moves in a few experiments only; its response is exactly zero in the others (inputs are
         # deviations from rest), so only those are filtered
-        rows, src, dest = self._moving[j]
-        out = []
-        for resp in unit_responses(structure, theta, self.es.du[j][rows], self.es.dt_s):
-            col = np.zeros(self.n)
-            col[dest] = resp.ravel().take(src)
-            out.append(col)
+        out = [np.zeros(self.n) for _ in range(n_linear(structure))]
+        for rows, length, src, dest in self._moving[j]:
+            for col, resp in zip(out, unit_responses(structure, theta, self.es.du[j][rows, :length], self.es.dt_s),
+                                 strict=True):
+                col[dest] = resp.ravel().take(src)
         return out
 
     def columns(self, structures: Sequence[str], thetas: Sequence[Sequence[float]]) -> np.ndarray:
+        """The whole design: path columns, the extra columns, one offset column per experiment."""
         cols = [c for j, s in enumerate(structures) if s != "zero" for c in self.path_columns(j, s, thetas[j])]
-        return np.column_stack([*cols, self.offset_cols]) if cols else self.offset_cols
+        return np.column_stack([*cols, self.extra, self.offset_cols])
 
     def _group_means(self, m: np.ndarray) -> np.ndarray:
         """Per-experiment column means of ``m`` (rows of the experiments that have any)."""
@@ -155,12 +179,14 @@ class AxisProblem:
         return m - np.repeat(self._group_means(m), self._counts[self._counts > 0], axis=0)
 
     def solve(self, paths: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(path gains then per-experiment offsets, residual, Q of the demeaned path columns).
+        """(path gains, extra gains, then per-experiment offsets; residual; Q of the demeaned columns).
 
         Columns are scaled for conditioning; the offsets come from the experiments' means after the gains.
         """
         self.evaluations += 1
         offsets = np.zeros(self.es.n_exp)
+        if self.extra.shape[1]:
+            paths = np.column_stack([paths, self.extra])
         if paths.shape[1] == 0:
             offsets[self._counts > 0] = self._y_means
             return offsets, self.y_demeaned.copy(), np.zeros((self.n, 0))
@@ -188,8 +214,8 @@ class AxisProblem:
         sizes = [n_nonlinear(s) for s in structures]
         owner = [j for j, n in enumerate(sizes) for _ in range(n)]
         lo, hi = [], []
-        for s in structures:
-            a, b = self.bounds.of(s)
+        for s, bounds in zip(structures, self.input_bounds, strict=True):
+            a, b = bounds.of(s)
             lo += a
             hi += b
         x0 = np.array([v for th in theta0 for v in th], dtype=float)
@@ -248,8 +274,10 @@ class AxisProblem:
         sizes_lin = [len(cols) for cols in per_path]
         gains = _split(coef, sizes_lin)
         k = sum(sizes_lin)
+        m = self.extra.shape[1]
         fit = AxisFit(axis=self.es.axes[self.i], structures=structures, thetas=[t.copy() for t in thetas],
-                      gains=gains, offsets=coef[k:], rss=float(r @ r), n=self.n, nfev=nfev, converged=converged)
+                      gains=gains, offsets=coef[k + m:], extra_gains=coef[k: k + m], rss=float(r @ r), n=self.n,
+                      nfev=nfev, converged=converged)
         fit.residuals = self._per_experiment(r)
         return fit
 
@@ -310,7 +338,7 @@ class AxisProblem:
         structures = fit.structures
         sizes = [n_nonlinear(s) for s in structures]
         x = np.concatenate([np.asarray(t, float) for t in fit.thetas]) if fit.thetas else np.zeros(0)
-        lin = np.concatenate([*fit.gains, fit.offsets])
+        lin = np.concatenate([*fit.gains, fit.extra_gains, fit.offsets])
 
         def split(v: np.ndarray) -> list[np.ndarray]:
             return _split(v, sizes)
@@ -357,7 +385,7 @@ class AxisProblem:
 def bank_start(problem: AxisProblem, active: Sequence[bool], n_modes: int = 12) -> list[list[float]]:
     """Per factor, the one or two dominant time constants of a ridge fit over a bank of first-order modes."""
     b = problem.bounds
-    taus = np.geomspace(max(math.exp(b.log_tau_min), problem.es.dt_s), problem.es.longest_s * 2, n_modes)
+    taus = np.geomspace(max(math.exp(b.log_tau_min), problem.es.dt_s), math.exp(b.log_tau_max) * 2, n_modes)
     cols, owner = [], []
     for j, on in enumerate(active):
         if not on:
@@ -369,7 +397,7 @@ def bank_start(problem: AxisProblem, active: Sequence[bool], n_modes: int = 12) 
     starts: list[list[float]] = [[] for _ in active]
     if not cols:
         return starts
-    phi = np.column_stack([*cols, problem.offset_cols])
+    phi = np.column_stack([*cols, problem.extra, problem.offset_cols])
     scale = np.linalg.norm(phi, axis=0)
     scale[scale == 0] = 1.0
     A = phi / scale
@@ -413,12 +441,17 @@ def bic(fit: AxisFit, n_eff: float) -> float:
 
 def select_axis(es: ExperimentSet, axis_index: int, *, active: Sequence[bool],
                 candidates: Sequence[str] = CANDIDATES, prune: bool = True,
-                progress: Callable[[str], None] | None = None) -> AxisSelection:
-    """Fit every candidate structure on one axis, choose by :func:`bic`, then prune weak paths."""
+                progress: Callable[[str], None] | None = None, seeds: Sequence[Sequence[Sequence[float]]] = (),
+                input_bounds: Sequence[Bounds | None] | None = None) -> AxisSelection:
+    """Fit every candidate structure on one axis, choose by :func:`bic`, then prune weak paths.
+
+    ``seeds``: more starting time constants (per input) beside the bank's, e.g. an earlier model's;
+    ``input_bounds``: per input, where its time constants may go (default: the data's bounds).
+    """
     t0 = time.perf_counter()
-    problem = AxisProblem(es, axis_index)
+    problem = AxisProblem(es, axis_index, input_bounds=input_bounds)
     # a structure with as many parameters as windows fits anything (and its least squares is underdetermined)
-    offsets = int(np.count_nonzero(problem._counts))
+    offsets = int(np.count_nonzero(problem._counts)) + problem.extra.shape[1]
     need = {c: sum(n_nonlinear(c) + n_linear(c) for on in active if on) + offsets + 1 for c in candidates}
     candidates = [c for c in candidates if need[c] <= problem.n]
     if not candidates:
@@ -437,8 +470,8 @@ def select_axis(es: ExperimentSet, axis_index: int, *, active: Sequence[bool],
         # another must not end up fitting worse than it because of a local minimum
         earlier = [[_time_constants(f, j) for j in range(len(active))] for f in tried.values()]
         # the bank's start never beat the first-order or two-mode solutions as a start for a second order
-        seeds = earlier if cand == "second_order" and earlier else [starts, *earlier]
-        tried[cand] = problem.best_of(structures, _theta_starts(structures, seeds, problem))
+        tried_seeds = earlier if cand == "second_order" and earlier else [starts, *earlier]
+        tried[cand] = problem.best_of(structures, _theta_starts(structures, [*tried_seeds, *seeds], problem))
     tried = {c: tried[c] for c in candidates}
     richest = max(tried.values(), key=lambda f: f.k)
     n_eff, rho = effective_n(richest.residuals)
@@ -469,8 +502,27 @@ def select_axis(es: ExperimentSet, axis_index: int, *, active: Sequence[bool],
 
 def _theta_starts(structures: Sequence[str], seeds: Sequence[Sequence[Sequence[float]]],
                   problem: AxisProblem) -> list[list[list[float]]]:
-    return [[theta_from_time_constants(s, seed[j], problem.bounds) if s != "zero" else []
+    return [[theta_from_time_constants(s, seed[j], problem.input_bounds[j]) if s != "zero" else []
              for j, s in enumerate(structures)] for seed in seeds]
+
+
+def refit_axis(es: ExperimentSet, axis_index: int, *, structures: Sequence[str],
+               seeds: Sequence[Sequence[Sequence[float]]] = (), input_bounds: Sequence[Bounds | None] | None = None,
+               with_sd: bool = True) -> AxisFit:
+    """Fit one axis with given path structures (and the set's extra columns), from several starts.
+
+    The starts are the bank's (a linear fit over first-order modes, the extra columns beside them) and
+    every seed given (time constants per input, e.g. an earlier model's): a model identified while some
+    disturbance acted sits in a local minimum that its own time constants do not leave.
+    """
+    problem = AxisProblem(es, axis_index, input_bounds=input_bounds)
+    active = [s != "zero" for s in structures]
+    starts = [bank_start(problem, active), *([list(map(list, s)) for s in seeds])]
+    fit = problem.best_of(structures, _theta_starts(structures, starts, problem))
+    if with_sd:
+        n_eff, _ = effective_n(fit.residuals)
+        fit.sd = problem.uncertainties(fit, fit.n / n_eff)
+    return fit
 
 
 def _time_constants(fit: AxisFit, j: int) -> list[float]:

@@ -1,0 +1,218 @@
+"""Is the model fit for compensation at all? Judged before any hypothesis, on what it did not train on.
+
+A model identified while something it does not know acted (the room drifting during the experiments) can
+predict 50-100 um where the machine moved 15-50 um. No term added to it repairs that, and "nothing
+significant is missing" must never be printed over it. Two checks:
+
+- On the recordings the model did not train on (not in its ``[info] experiments``), aligned at their
+  start as ``cncgw estimate`` aligns them: the largest error against the peak displacement
+  (:data:`MAX_ERROR_SHARE`), predictions beyond anything measured (:data:`PREDICTION_EXCESS`), and a
+  residual as large as the displacement itself (:data:`RESIDUAL_SHARE`).
+- Drift while every input rests (:func:`resting_drift`): stretches of at least :data:`REST_MIN_S` where no
+  factor moves and the model predicts no change, yet the displacement moves. That is a disturbance no
+  factor carries (room temperature, coolant, a neighbouring machine), or heat slower than every mode of
+  the model; the identification experiments' own idle stretches are checked too.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from gateway.diagnose.data import Stack
+from gateway.estimate import LEAD_IN_MAX, error_figures
+from gateway.model.model import ThermalModel
+
+#: max |error| beyond this share of the peak |displacement| is unfit for compensation
+MAX_ERROR_SHARE = 0.30
+#: predicting more than this times the largest measured displacement (plus the noise band) is unfit
+PREDICTION_EXCESS = 1.25
+#: a residual RMS at least this share of the displacement's own RMS: the model explains next to nothing
+RESIDUAL_SHARE = 0.7
+#: resting stretches shorter than this are not judged
+REST_MIN_S = 45 * 60.0
+#: a factor "rests" within this share of its range over the recordings
+REST_SHARE = 0.02
+
+
+@dataclass(frozen=True, kw_only=True)
+class AxisAdequacy:
+    """The model's errors on one axis over the recordings it did not train on, and why it is unfit (if so)."""
+
+    axis: str
+    windows: int
+    rms_um: float
+    max_abs_error_um: float
+    peak_um: float
+    max_error_pct_of_peak: float
+    predicted_peak_um: float
+    displacement_rms_um: float
+    reasons: tuple[str, ...] = ()
+
+    @property
+    def fit(self) -> bool:
+        return not self.reasons
+
+
+@dataclass(frozen=True, kw_only=True)
+class RestingDrift:
+    """Drift of one axis while every input rested and the model predicted no change."""
+
+    axis: str
+    stretches: int  # resting stretches judged
+    drifting: int  # of them, those whose displacement moved beyond the noise
+    largest_um: float  # the largest drift over one stretch
+    rate_um_h: float  # its rate
+    recordings: tuple[str, ...]  # where the drifting stretches are
+
+
+@dataclass(frozen=True, kw_only=True)
+class Adequacy:
+    """The verdict before any hypothesis: per axis on unseen recordings, and drift at rest."""
+
+    unseen: tuple[str, ...]
+    axes: dict[str, AxisAdequacy]
+    drift: dict[str, RestingDrift]
+
+    @property
+    def judged(self) -> bool:
+        """Whether any recording the model did not train on was there to judge it."""
+        return bool(self.axes)
+
+    @property
+    def fit(self) -> bool:
+        return all(a.fit for a in self.axes.values())
+
+    @property
+    def unfit_axes(self) -> list[str]:
+        return [a for a, x in self.axes.items() if not x.fit]
+
+    def lines(self) -> list[str]:
+        """Plain sentences, the verdict first."""
+        out = []
+        if not self.judged:
+            out.append("the model's fitness for compensation cannot be judged: every recording given identified it; "
+                       "pass recordings it has not seen (production days with measured displacement)")
+        elif not self.fit:
+            why = "; ".join(f"axis {a}: {', '.join(x.reasons)}" for a, x in self.axes.items() if x.reasons)
+            out.append(f"this model is not fit for compensation: on {len(self.unseen)} recording(s) it did not "
+                       f"train on, {why}")
+        else:
+            worst = max(self.axes.values(), key=lambda x: x.max_error_pct_of_peak)
+            out.append(f"on {len(self.unseen)} recording(s) it did not train on, the model stays within "
+                       f"{worst.max_error_pct_of_peak:.0f} % of the peak displacement (worst axis {worst.axis}: max "
+                       f"|error| {worst.max_abs_error_um:.3g} um of {worst.peak_um:.3g} um)")
+        for d in self.drift.values():
+            if d.drifting:
+                out.append(f"axis {d.axis}: the displacement drifts while every input rests and the model predicts no "
+                           f"change, in {d.drifting} of {d.stretches} resting stretches (up to {d.largest_um:.3g} um, "
+                           f"{d.rate_um_h:+.2g} um/h; {', '.join(d.recordings[:4])}"
+                           f"{', ...' if len(d.recordings) > 4 else ''}): a disturbance no factor carries (room "
+                           "temperature, coolant, a neighbouring machine), or heat slower than every mode of the model")
+        return out
+
+
+def assess(stack: Stack, model: ThermalModel, sigma_um: dict[str, float]) -> Adequacy:
+    """Judge ``model`` (its prediction is ``stack.base``) before any hypothesis; ``sigma_um``: noise per axis."""
+    seen = set(model.info.get("experiments", []) or [])
+    unseen = [r for r, name in enumerate(stack.names) if name not in seen]
+    axes: dict[str, AxisAdequacy] = {}
+    for i, a in enumerate(stack.axes):
+        errs, meas, pred = [], [], []
+        for r in unseen:
+            lo, hi = stack.bounds[r]
+            y, p = stack.y[i, lo:hi], stack.base[i, lo:hi]
+            ok = np.isfinite(y)
+            if not ok.any():
+                continue
+            lead = _lead_in(stack, lo, hi) & ok
+            if not lead.any():
+                lead = np.zeros_like(ok)
+                lead[int(np.flatnonzero(ok)[0])] = True
+            offset = float(np.mean(y[lead] - p[lead]))
+            errs.append((y - offset - p)[ok])
+            meas.append((y - offset)[ok])
+            pred.append(p[ok])
+        if not errs:
+            continue
+        err, m, p = np.concatenate(errs), np.concatenate(meas), np.concatenate(pred)
+        fig = error_figures(err, m)
+        band = 3.0 * sigma_um.get(a, 0.0)
+        disp_rms = float(np.sqrt(np.mean((m - m.mean()) ** 2)))
+        reasons = []
+        if fig["peak_um"] > band and fig["max_error_pct_of_peak"] > 100 * MAX_ERROR_SHARE:
+            reasons.append(f"max |error| {fig['max_abs_error_um']:.3g} um is {fig['max_error_pct_of_peak']:.0f} % of "
+                           f"the peak displacement {fig['peak_um']:.3g} um (fit: under {100 * MAX_ERROR_SHARE:.0f} %)")
+        predicted = float(np.max(np.abs(p)))
+        if predicted > PREDICTION_EXCESS * fig["peak_um"] + band:
+            reasons.append(f"it predicts up to {predicted:.3g} um where the machine moved at most "
+                           f"{fig['peak_um']:.3g} um")
+        if disp_rms > band and fig["rms_um"] >= RESIDUAL_SHARE * disp_rms:
+            reasons.append(f"its error ({fig['rms_um']:.3g} um RMS) is as large as the displacement itself "
+                           f"({disp_rms:.3g} um RMS)")
+        axes[a] = AxisAdequacy(axis=a, windows=fig["windows"], rms_um=fig["rms_um"],
+                               max_abs_error_um=fig["max_abs_error_um"], peak_um=fig["peak_um"],
+                               max_error_pct_of_peak=fig["max_error_pct_of_peak"], predicted_peak_um=predicted,
+                               displacement_rms_um=disp_rms, reasons=tuple(reasons))
+    drift = {a: resting_drift(stack, i, sigma_um.get(a, 0.0)) for i, a in enumerate(stack.axes)
+             if np.isfinite(stack.y[i]).any()}
+    return Adequacy(unseen=tuple(stack.names[r] for r in unseen), axes=axes, drift=drift)
+
+
+def _lead_in(stack: Stack, lo: int, hi: int) -> np.ndarray:
+    """The idle windows at a recording's start (at most LEAD_IN_MAX), as ``cncgw estimate`` aligns on them."""
+    out = np.zeros(hi - lo, dtype=bool)
+    moving = np.zeros(hi - lo, dtype=bool)
+    for f in stack.factors:
+        u = stack.du[f][lo:hi]
+        size = float(np.max(np.abs(u))) if u.size else 0.0
+        if size > 0:
+            moving |= np.abs(u) > 0.01 * size
+    first = np.flatnonzero(moving)
+    out[: max(1, min(int(first[0]) if first.size else hi - lo, LEAD_IN_MAX))] = True
+    return out
+
+
+def resting_drift(stack: Stack, axis: int, sigma_um: float) -> RestingDrift:
+    """Drift of the displacement over stretches where no factor moves and the model predicts no change."""
+    at_rest = np.ones(stack.n, dtype=bool)
+    for f in stack.factors:
+        u = stack.du[f]
+        span = float(np.ptp(u)) if u.size else 0.0
+        if span > 0:
+            # resting: at the level the recording started from (the model's rest), within a share of the range
+            at_rest &= np.abs(u) <= REST_SHARE * span
+    min_len = max(3, math.ceil(REST_MIN_S / stack.dt_s))
+    y, base = stack.y[axis], stack.base[axis]
+    band = max(4.0 * sigma_um, 1e-9)
+    judged = drifting = 0
+    largest = rate = 0.0
+    where: list[str] = []
+    for r, (lo, hi) in enumerate(stack.bounds):
+        k = lo
+        while k < hi:
+            if not at_rest[k]:
+                k += 1
+                continue
+            end = k
+            while end < hi and at_rest[end]:
+                end += 1
+            if end - k >= min_len:
+                seg = slice(k, end)
+                ok = np.isfinite(y[seg])
+                if ok.sum() >= min_len and float(np.ptp(base[seg])) < band:
+                    judged += 1
+                    t_h = (stack.time_s[seg][ok] - stack.time_s[k]) / 3600.0
+                    slope = float(np.polyfit(t_h, y[seg][ok], 1)[0]) if len(t_h) > 2 else 0.0
+                    moved = slope * float(t_h[-1] - t_h[0])
+                    if abs(moved) > band:
+                        drifting += 1
+                        if stack.names[r] not in where:
+                            where.append(stack.names[r])
+                        if abs(moved) > abs(largest):
+                            largest, rate = moved, slope
+            k = end
+    return RestingDrift(axis=stack.axes[axis], stretches=judged, drifting=drifting, largest_um=abs(largest),
+                        rate_um_h=rate, recordings=tuple(where))

@@ -1,0 +1,185 @@
+"""Re-identification as a way to model a hypothesis: every path refitted beside the candidate's terms.
+
+When the missing physics also acted during the identification experiments (the room does not stop
+drifting while an experiment runs), the identified paths are wrong, and a term added on top of them cannot
+repair them. Two tools here:
+
+- :func:`path_corrections`: for the hypothesis search, columns that let every path of the model change
+  (each active input through a bank of first-order lags spanning the identification's time scales). A
+  hypothesis judged with them is judged by what it adds to a re-identified model, cheaply (linear).
+- :func:`reidentify`: the model itself identified again by the joint identifier on all recordings given
+  (identification experiments and production alike), with the accepted hypotheses' terms as inputs beside
+  the factors: the model that is written.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from gateway.diagnose.data import Stack, lag, log_grid
+from gateway.diagnose.extend import extend_model
+from gateway.diagnose.hypotheses import Setting
+from gateway.diagnose.search import Term, Trial, setting_columns
+from gateway.identify.common import Bounds, ExperimentSet
+from gateway.identify.joint import AxisSelection, select_axis
+from gateway.model.model import PathTF, ThermalModel
+
+#: lags per input in the correction bank (log-spaced over the identification's time scales)
+BANK_PER_DECADE = 2.5
+
+
+def identification_length_s(model: ThermalModel) -> float:
+    """How long the identification runs were (model info), else its slowest time constant, else 12 h."""
+    length = model.info.get("longest_experiment_s")
+    if isinstance(length, int | float) and length > 0:
+        return float(length)
+    taus = [t for p in model.paths.values() for term in p.terms for t in term.time_constants_s]
+    return max(taus, default=12 * 3600.0)
+
+
+def bank_taus(stack: Stack, model: ThermalModel) -> list[float]:
+    """The correction bank's time constants: from a few windows to the identification runs' length."""
+    return log_grid(max(5.0 * 60.0, 2.0 * stack.dt_s), identification_length_s(model), BANK_PER_DECADE)
+
+
+def path_corrections(stack: Stack, model: ThermalModel) -> list[np.ndarray]:
+    """Every input that moves, through every lag of the bank: the span of the paths' possible corrections."""
+    cols = []
+    for name in model.input_names:
+        u = stack.du.get(name)
+        if u is None or not np.any(u):
+            continue
+        for tau in bank_taus(stack, model):
+            cols.append(stack.response(u, lag(tau)))
+    return cols
+
+
+def stack_experiments(stack: Stack, factors: Sequence[str], y: np.ndarray,
+                      extras: Sequence[np.ndarray] = ()) -> ExperimentSet:
+    """The stack's recordings as the joint identifier's experiments (each from its own initial state).
+
+    ``y`` (axes, every window of the stack) is what is fitted; ``extras`` are stack-long columns that enter
+    linearly beside the paths (a hypothesis's terms at fixed time constants, nuisance, artefacts).
+    """
+    lengths = np.array([b - a for a, b in stack.bounds])
+    n, e = int(lengths.max()), len(stack.bounds)
+    du = np.zeros((len(factors), e, n))
+    yy = np.full((y.shape[0], e, n), np.nan)
+    ex = np.zeros((len(extras), e, n))
+    u0 = np.zeros((e, len(factors)))
+    for r, (a, b) in enumerate(stack.bounds):
+        for j, f in enumerate(factors):
+            du[j, r, : b - a] = stack.du[f][a:b]
+            u0[r, j] = stack.raw[f][a] - stack.du[f][a]
+        yy[:, r, : b - a] = y[:, a:b]
+        for c, col in enumerate(extras):
+            ex[c, r, : b - a] = col[a:b]
+    return ExperimentSet(names=stack.names, factors=tuple(factors), axes=stack.axes, dt_s=stack.dt_s, du=du, y=yy,
+                         lengths=lengths, u0=u0, extra=ex if len(extras) else None,
+                         extra_names=tuple(f"extra{c}" for c in range(len(extras))))
+
+
+@dataclass(kw_only=True)
+class Reidentified:
+    """The model identified again on every recording of the stack, with the accepted hypotheses' terms."""
+
+    model: ThermalModel
+    prediction: np.ndarray  # (axes, windows of the stack): from rest at each recording's start, no offsets
+    #: per axis, the regressors of its gains at the fitted time constants (every path term at unit gain, every
+    #: accepted component), and what it holds fixed: the held-out scoring refits these gains per fold
+    columns: dict[str, list[np.ndarray]]
+    fixed: dict[str, np.ndarray]
+    selections: dict[str, AxisSelection]
+    terms: dict[str, list[Term]]
+    wall_s: float = 0.0
+
+
+def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
+               artefacts: Mapping[str, Sequence[np.ndarray]] | None = None,
+               progress: Callable[[str], None] | None = None) -> Reidentified:
+    """Identify ``model``'s paths again on every recording, jointly with the accepted hypotheses' terms.
+
+    Every path of the factors is refitted by the joint identifier (its structure chosen again, weak paths
+    pruned again), started from the bank and from ``model``'s own time constants, its time constants held
+    within the identification runs' length (what is slower is a hypothesis's to claim: a slow mode). The
+    accepted hypotheses enter at the settings the search chose, their gains fitted jointly; a hypothesis's
+    "gain correction" of an identified path is dropped (the path is refitted anyway); its nuisance columns
+    (an initial state, a drift) and the measurement artefacts are fitted beside and left out of the model.
+    Paths of derived inputs ``model`` already has stay as they are.
+    """
+    t0 = time.perf_counter()
+    factors = model.factors
+    derived = [j for j, name in enumerate(model.input_names) if name not in factors]
+    frozen = stack.contributions[:, derived, :].sum(axis=1) if derived else np.zeros_like(stack.base)
+    bounds = Bounds.for_data(stack.dt_s, identification_length_s(model))
+    active = [bool(np.any(stack.du[f])) for f in factors]
+    seeds = {a: [[t for term in model.path(a, f).terms for t in term.time_constants_s] or [3600.0] for f in factors]
+             for a in model.axes}
+    selections: dict[str, AxisSelection] = {}
+    columns: dict[str, list[np.ndarray]] = {}
+    fixed: dict[str, np.ndarray] = {}
+    terms: dict[str, list[Term]] = {}
+    prediction = np.zeros_like(stack.base)
+    paths: list[PathTF] = []
+    for i, a in enumerate(model.axes):
+        if not np.isfinite(stack.y[i]).any():
+            paths += [model.path(a, f) for f in factors]
+            prediction[i] = stack.base[i]
+            continue
+        kept: list[tuple[Trial, Setting]] = []
+        phys: list[np.ndarray] = []
+        nuisance: list[np.ndarray] = []
+        for t in accepted:
+            e = t.evidence.get(a)
+            if e is None or not e.included or e.setting is None:
+                continue
+            p_cols, n_cols = setting_columns(stack, e.setting)
+            if t.hypothesis.artefact:
+                nuisance += p_cols + n_cols
+                continue
+            comps = tuple(c for c in e.setting.components if not c.corrects)
+            setting = replace(e.setting, components=comps, signs=(), limits=())
+            kept.append((t, setting))
+            phys += [stack.column(c, setting.chain) for c in comps]
+            nuisance += n_cols
+        nuisance += list((artefacts or {}).get(a, []))
+        target = stack.y - frozen
+        es = stack_experiments(stack, factors, target, [*phys, *nuisance])
+        if progress:
+            progress(f"re-identifying axis {a}")
+        sel = select_axis(es, i, active=active, seeds=[seeds[a]], input_bounds=[bounds] * len(factors))
+        selections[a] = sel
+        fit = sel.chosen
+        axis_paths = fit.paths(factors)
+        paths += axis_paths
+        gains = fit.extra_gains[: len(phys)]
+        terms[a] = []
+        k = 0
+        for t, setting in kept:
+            g = gains[k: k + len(setting.components)]
+            k += len(setting.components)
+            contrib = sum((gi * stack.column(c, setting.chain) for gi, c in zip(g, setting.components, strict=True)),
+                          np.zeros(stack.n))
+            terms[a].append(Term(trial=t, axis=a, setting=setting, gains=np.asarray(g), contribution=contrib))
+        cols = []
+        pred = frozen[i].copy()
+        for p in axis_paths:
+            for term in p.terms:
+                unit = stack.response(stack.du[p.factor], (term.with_gain(1.0),), p.delay_s)
+                cols.append(unit)
+                pred += term.gain * unit
+        cols += phys
+        pred += sum((term.contribution for term in terms[a]), np.zeros(stack.n))
+        prediction[i] = pred
+        columns[a] = cols
+        fixed[a] = frozen[i]
+    base = model.with_paths(paths, info={**model.info, "reidentified": {
+        "recordings": list(stack.names), "structure": {a: s.chosen.structures[0] for a, s in selections.items()},
+        "pruned": {a: list(s.pruned) for a, s in selections.items()}}})
+    extended = extend_model(base, terms)
+    return Reidentified(model=extended, prediction=prediction, columns=columns, fixed=fixed, selections=selections,
+                        terms=terms, wall_s=time.perf_counter() - t0)
