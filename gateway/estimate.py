@@ -21,9 +21,15 @@ import numpy as np
 
 from gateway.model.model import ThermalModel
 from gateway.prepare import prepare
-from gateway.recording import Recording, format_recording
+from gateway.recording import Recording, continued, format_recording
 
 ALIGN_CHOICES = ("start", "none", "offset")
+#: how the model's state at a recording's start is known: at rest, or fitted to its first hour
+INITIAL_STATES = ("rest", "fit")
+#: the stretch of measured displacement an initial state is fitted on
+INITIAL_FIT_S = 3600.0
+#: at most this many slow modes are fitted as the initial state
+INITIAL_FIT_MODES = 3
 #: most windows of idle lead-in averaged for the measured zero
 LEAD_IN_MAX = 10
 
@@ -103,16 +109,41 @@ def estimate(
     initial: str = "first",
     gap_policy: str = "hold",
     align: str = "start",
+    history: Recording | None = None,
+    initial_state: str = "rest",
 ) -> Estimate:
-    """Run the model over a recording (batch replay of the same discretisation the live estimator uses)."""
+    """Run the model over a recording (batch replay of the same discretisation the live estimator uses).
+
+    The model starts in equilibrium at the recording's first window (``initial``), unless
+
+    - ``history``: a recording that ended before this one (the previous day, the stored history): the model
+      runs over both, so this one starts in the state the history left (what ``cncgw run`` does with its
+      records after a restart);
+    - ``initial_state="fit"``: the state at the start is estimated from the first
+      :data:`INITIAL_FIT_S` of measured displacement, as decays of the model's slow modes (for a recording
+      that starts warm, mid-work, with no history). Said so in the notes; the first hour then scores the
+      fit, not the model.
+    """
     if align not in ALIGN_CHOICES:
         raise ValueError(f"align must be one of {ALIGN_CHOICES}. Got {align!r}")
-    prep = prepare(rec, factors=model.factors, axes=model.axes, initial=initial, reference=model.reference,
+    if initial_state not in INITIAL_STATES:
+        raise ValueError(f"initial_state must be one of {INITIAL_STATES}. Got {initial_state!r}")
+    run = continued(history, rec) if history is not None else rec
+    skip = len(run) - len(rec)
+    prep = prepare(run, factors=model.factors, axes=model.axes, initial=initial, reference=model.reference,
                    gap_policy=gap_policy, inputs=model.inputs)
-    est = model.discretize(rec.period_s).simulate(prep.du)
-    measured = prep.y.copy()
-    notes = list(prep.notes) + extrapolation_notes(model, prep.du)
+    est = model.discretize(rec.period_s).simulate(prep.du)[:, skip:]
+    du = prep.du[:, skip:]
+    measured = prep.y[:, skip:].copy()
+    time_s = prep.time_s[skip:]
+    notes = list(prep.notes) + extrapolation_notes(model, du)
+    if history is not None:
+        notes.append(f"started in the state {history.source} left ({len(history)} windows before this recording)")
+    if initial_state == "fit":
+        est, text = _fit_initial_state(model, time_s, est, measured)
+        notes.append(text)
     metrics: dict[str, AxisMetrics] = {}
+    lead_n = min(_lead_in(du - du[:, :1]), LEAD_IN_MAX)
     for i, a in enumerate(model.axes):
         ok = np.isfinite(measured[i])
         if not ok.any():
@@ -121,7 +152,7 @@ def estimate(
             continue
         if align == "start":
             lead = np.zeros_like(ok)
-            lead[: min(_lead_in(prep.du), LEAD_IN_MAX)] = True
+            lead[:lead_n] = True
             use = lead & ok
             if not use.any():
                 use = np.zeros_like(ok)
@@ -134,9 +165,52 @@ def estimate(
         measured[i] -= offset
         metrics[a] = AxisMetrics(axis=a, **error_figures(measured[i, ok] - est[i, ok], measured[i, ok]),
                                  offset_um=offset)
-    return Estimate(recording=rec.source, axes=model.axes, time_s=prep.time_s, estimated=est,
-                    measured=measured, present=prep.present, metrics=metrics, notes=tuple(notes),
-                    settings={"initial": initial, "gap_policy": gap_policy, "align": align})
+    settings = {"initial": initial, "gap_policy": gap_policy, "align": align, "initial_state": initial_state}
+    if history is not None:
+        settings["history"] = history.source
+    return Estimate(recording=rec.source, axes=model.axes, time_s=time_s, estimated=est,
+                    measured=measured, present=prep.present[skip:], metrics=metrics, notes=tuple(notes),
+                    settings=settings)
+
+
+def _fit_initial_state(model: ThermalModel, time_s: np.ndarray, est: np.ndarray,
+                       measured: np.ndarray) -> tuple[np.ndarray, str]:
+    """``est`` plus the free decay of the model's slow modes, fitted to the first hour of measurement.
+
+    At most :data:`INITIAL_FIT_MODES` time constants (the model's slowest, at least half a decade apart and
+    at least 10 minutes: faster ones have decayed within the hour anyway), and a constant: linear least
+    squares per axis, slightly ridged (over one hour slow decays look alike).
+    """
+    taus = sorted({t for p in model.paths.values() for term in p.terms for t in term.time_constants_s
+                   if t >= 600.0}, reverse=True)
+    chosen: list[float] = []
+    for t in taus:
+        if all(abs(math.log10(t / c)) >= 0.5 for c in chosen):
+            chosen.append(t)
+        if len(chosen) == INITIAL_FIT_MODES:
+            break
+    rel = time_s - time_s[0] + (time_s[1] - time_s[0] if len(time_s) > 1 else 0.0)
+    first = rel <= INITIAL_FIT_S
+    out = est.copy()
+    if not chosen:
+        return out, "initial state: the model has no mode slower than 10 min; started at rest"
+    D = np.column_stack([np.exp(-rel / t) for t in chosen])
+    fitted = []
+    for i, a in enumerate(model.axes):
+        ok = first & np.isfinite(measured[i])
+        if ok.sum() < len(chosen) + 3:
+            continue
+        X = np.column_stack([np.ones(int(ok.sum())), D[ok]])
+        r = measured[i, ok] - est[i, ok]
+        scale = np.linalg.norm(X, axis=0)
+        Xs = X / scale
+        coef = np.linalg.solve(Xs.T @ Xs + 1e-6 * np.eye(X.shape[1]), Xs.T @ r) / scale
+        out[i] = est[i] + D @ coef[1:]
+        fitted.append(a)
+    modes = ", ".join(f"{t / 3600:.3g} h" for t in chosen)
+    return out, (f"initial state estimated from the first {INITIAL_FIT_S / 3600:g} h of measured displacement "
+                 f"(free decays of the modes {modes} on {', '.join(fitted) or 'no axis'}): the recording starts "
+                 "warm; that hour scores the fit, not the model")
 
 
 def extrapolation_notes(model: ThermalModel, du: np.ndarray, *, margin: float = 1.2) -> list[str]:

@@ -132,6 +132,46 @@ class Recording:
         )
 
 
+def continued(history: Recording, rec: Recording) -> Recording:
+    """``history`` followed by ``rec``: one recording, the windows between them explicit missing rows.
+
+    For a recording that starts where another left off (the previous day, the stored history): a model run
+    over both starts ``rec`` in the state the history left, not at rest. Columns missing from either part
+    are NaN there; the window lengths must agree and ``rec`` must start after the history ends, within
+    :data:`MAX_GAP_S`.
+    """
+    if abs(history.period_s - rec.period_s) > 1e-9 * rec.period_s:
+        raise RecordingError(f"{history.source}: windows of {history.period_s:g} s, but {rec.source} has "
+                             f"{rec.period_s:g} s: a history must have the recording's window length")
+    if not len(history) or not len(rec):
+        return rec if not len(history) else history
+    gap_s = float(rec.time_s[0] - history.time_s[-1])
+    if not gap_s > 0.5 * rec.period_s:
+        raise RecordingError(f"{history.source} ends at t={history.time_s[-1]:g} s, not before {rec.source} starts "
+                             f"(t={rec.time_s[0]:g} s): expected a history that ends before the recording")
+    if gap_s > MAX_GAP_S + rec.period_s:
+        raise RecordingError(f"{history.source} ends {gap_s / 86400:.1f} days before {rec.source} starts: expected a "
+                             f"history that ends at most {MAX_GAP_S / 86400:g} days before")
+    missing = max(0, round(gap_s / rec.period_s) - 1)
+    t_gap = history.time_s[-1] + rec.period_s * np.arange(1, missing + 1)
+    n_h, n_r = len(history), len(rec)
+
+    def joined(a: Mapping[str, np.ndarray], b: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        out = {}
+        for k in dict.fromkeys([*a, *b]):
+            head = np.asarray(a[k], float) if k in a else np.full(n_h, np.nan)
+            out[k] = np.concatenate([head, np.full(missing, np.nan),
+                                     np.asarray(b[k], float) if k in b else np.full(n_r, np.nan)])
+        return out
+
+    t = np.concatenate([history.time_s, t_gap, rec.time_s])
+    present = np.concatenate([history.present, np.zeros(missing, dtype=bool), rec.present])
+    return Recording(source=rec.source, period_s=rec.period_s, time_s=t, present=present,
+                     factors=joined(history.factors, rec.factors),
+                     displacement=joined(history.displacement, rec.displacement),
+                     extras=joined(history.extras, rec.extras), meta=rec.meta, gaps=_gaps_from_mask(t, present))
+
+
 def _gaps_from_mask(time_s: np.ndarray, present: np.ndarray) -> tuple[Gap, ...]:
     gaps, k, n = [], 0, len(present)
     while k < n:

@@ -80,7 +80,7 @@ def test_identify_then_estimate_on_files(workdir, capsys):
     z = report[0]["axes"]["z"]
     assert z["peak_um"] > 10.0
     assert z["max_error_pct_of_peak"] < 5.0  # held-out run, plant of the model's own kind
-    assert report[0]["settings"] == {"initial": "first", "gap_policy": "hold", "align": "start"}
+    assert report[0]["settings"] == {"initial": "first", "gap_policy": "hold", "align": "start", "initial_state": "rest"}
     pred = read_recording("pred.csv", factor_columns={}, displacement_columns={"z": "z_est_um"})
     assert len(pred) == 360
     assert {"x_resid_um", "z_meas_um"} <= set(pred.extras)

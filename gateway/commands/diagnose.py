@@ -46,10 +46,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     """Add ``cncgw diagnose``."""
     p = sub.add_parser(
         "diagnose", help="find what physics the model misses, add it, and show the fit improve on held-out data",
-        description="Compare a model with recordings: locate where the residual leaves its noise band, test "
+        description="Compare a model with recordings: judge first whether it is fit for compensation on the "
+                    "recordings it did not train on, locate where the residual leaves its noise band, test "
                     "hypotheses of missing physics (room temperature, eddy loss ~ speed^2, a slow mode, cabinet "
-                    "heat, bearing preload, dead time, a chiller...) on held-out blocks of time with family-wise "
-                    "error control, classify measurement artefacts, and write the extended model.")
+                    "heat, bearing preload, dead time, a chiller...) with every path refitted beside them, on "
+                    "held-out blocks of time with family-wise error control, classify measurement artefacts, "
+                    "re-identify the model on all recordings with what was accepted, and write the best model "
+                    "that passes on the held-out blocks.")
     p.add_argument("--profile", required=True, metavar="PROFILE", help="machine profile (TOML)")
     p.add_argument("--model", metavar="MODEL", help="model file (default: the profile's)")
     p.add_argument("recordings", nargs="+", metavar="RECORDING", help="recordings with measured displacement (CSV)")
@@ -57,7 +60,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="write report.md, report.json, figures and <model>.diagnosed.model.toml here")
     p.add_argument("--json", action="store_true", help="print the report as JSON instead of text")
     p.add_argument("--validate", nargs="+", metavar="RECORDING", default=[],
-                   help="recordings never used for fitting or selection: estimated with the model before and after")
+                   help="recordings never used for fitting or selection: estimated with the identified and the written "
+                        "model as cncgw estimate does (a recording that starts warm: its initial state from its "
+                        "first hour, said so)")
     p.add_argument("--alpha", type=_share, default=0.05, help="family-wise error rate per round (default 0.05)")
     p.add_argument("--min-effect", type=_share, default=0.02, metavar="SHARE",
                    help="relevance: an accepted term's contribution RMS must reach this share of the largest peak "
@@ -68,16 +73,23 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--split-by", metavar="COLUMN",
                    help="a recording holds several runs one after the other (e.g. a day number column): start a "
                         "new recording wherever COLUMN changes value; each starts in its own equilibrium")
+    p.add_argument("--history", metavar="RECORDING",
+                   help="a recording that ran just before the first --validate recording: it starts in the state "
+                        "this one left (recordings given that end one window before another starts are chained "
+                        "that way on their own)")
+    p.add_argument("--no-reidentify", action="store_true",
+                   help="judge hypotheses only as terms on the frozen model and never re-identify its paths "
+                        "(the earlier behaviour; faster, wrong when the missing physics acted during identification)")
     p.add_argument("--force", action="store_true", help="overwrite REPORT_DIR's files")
     add_recording_options(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    """Diagnose; print conclusions and the before/after table; write the report on request."""
+    """Diagnose; print the verdict, conclusions and the models compared; write the report on request."""
     from gateway.diagnose import Options, diagnose, factor_infos, write_report
+    from gateway.diagnose.api import validate
     from gateway.diagnose.report import to_json
-    from gateway.estimate import estimate
 
     profile = load_profile(args.profile)
     model, model_path = load_model_for(profile, args.model)
@@ -86,47 +98,52 @@ def run(args: argparse.Namespace) -> int:
         recs = [part for r in recs for part in split_by(r, args.split_by)]
     if args.blocks < 3:
         raise UsageError(f"--blocks: expected at least 3 held-out blocks, got {args.blocks}")
-    options = Options(alpha=args.alpha, min_effect_share=args.min_effect, min_gain=args.min_gain, blocks=args.blocks)
+    options = Options(alpha=args.alpha, min_effect_share=args.min_effect, min_gain=args.min_gain, blocks=args.blocks,
+                      reidentify=not args.no_reidentify)
     out = Path(args.output) if args.output else None
     if out is not None and (out / "report.md").exists() and not args.force:
         raise GatewayError(f"{out}/report.md exists: pass --force to overwrite it")
+    vrecs = read_recordings(args.validate, profile, period_s=args.period_s, require_displacement=True) \
+        if args.validate else []
+    if args.split_by:
+        vrecs = [part for r in vrecs for part in split_by(r, args.split_by)]
+    history = None
+    if args.history:
+        history = read_recordings([args.history], profile, period_s=args.period_s, require_displacement=False)[0]
     d = diagnose(model, recs, factors=factor_infos(profile), options=options, gap_policy=args.gap_policy)
+    hedges = []
     if args.period_s:
-        d.conclusions.append(f"rows were taken as {args.period_s:g} s apart (--period-s): every time constant and "
-                             "dead time found scales with the true period")
-    validation = []
-    if args.validate:
-        for r in read_recordings(args.validate, profile, period_s=args.period_s, require_displacement=True):
-            b = estimate(model, r, gap_policy=args.gap_policy)
-            a = estimate(d.extended, r, gap_policy=args.gap_policy)
-            validation.append({"recording": r.source, "before": b.to_json()["axes"], "after": a.to_json()["axes"]})
-    extra = {"validation": validation, "model": str(model_path), "profile": str(profile.path)}
+        hedges.append(f"rows were taken as {args.period_s:g} s apart (--period-s): every time constant and dead time "
+                      "found scales with the true period")
+        d.conclusions.append(hedges[-1])
+    validations = validate(d, vrecs, earlier=recs, history=history, gap_policy=args.gap_policy) if vrecs else []
+    extra = {"model": str(model_path), "profile": str(profile.path)}
     written = {}
     if out is not None:
         written = write_report(d, out, model_name=model_path.name.removesuffix(".toml").removesuffix(".model"),
-                               title=f"{profile.name}, model {model_path.name}", extra=extra)
+                               title=f"{profile.name}, model {model_path.name}", extra=extra,
+                               validations=validations, hedges=hedges)
     if args.json:
-        print(json.dumps(to_json(d, model_file=str(written.get("model", ""))) | extra, indent=2))
+        print(json.dumps(to_json(d, model_file=str(written.get("model", "")), validations=validations) | extra,
+                         indent=2))
         return 0
     print(f"diagnosis of {len(recs)} recording(s) with model {model_path} ({d.wall_s:.1f} s):")
     for c in d.conclusions:
         print(f"  {c}")
-    print("held-out error per axis (each block predicted from the others), before -> after:")
+    print("held-out error per axis (each block predicted from the others), identified -> written model "
+          f"({d.comparison.written.title}):")
     for a, b in d.before.items():
-        af = d.after[a]
+        af = d.after.get(a, b)
         print(f"  {a}: RMS {b.rms_um:.3f} -> {af.rms_um:.3f} um, max |error| {b.max_abs_error_um:.3f} -> "
               f"{af.max_abs_error_um:.3f} um ({b.max_error_pct_of_peak:.1f} -> {af.max_error_pct_of_peak:.1f} % of "
               f"peak {b.peak_um:.3f} um)")
-    if validation:
-        print("validation recordings are estimated from their first window with the model's state at rest there "
-              "(as `cncgw estimate` does): a path from a recorded column (room) starts with an error its own lag "
-              "takes to decay")
-    for v in validation:
-        print(f"validation {v['recording']} (never fitted):")
-        for a, m in v["before"].items():
-            m2 = v["after"].get(a, {})
-            print(f"  {a}: RMS {m['rms_um']:.3f} -> {m2.get('rms_um', float('nan')):.3f} um, max |error| "
-                  f"{m['max_abs_error_um']:.3f} -> {m2.get('max_abs_error_um', float('nan')):.3f} um")
+    for v in validations:
+        print(f"validation {v.label} (never fitted; state at the start {v.start}):")
+        for a, m in v.before.metrics.items():
+            n = v.after.metrics.get(a)
+            if n is not None:
+                print(f"  {a}: RMS {m.rms_um:.3f} -> {n.rms_um:.3f} um, max |error| {m.max_abs_error_um:.3f} -> "
+                      f"{n.max_abs_error_um:.3f} um")
     for path in written.values():
         print(f"wrote {path}")
     return 0

@@ -7,9 +7,10 @@ from pathlib import Path
 
 from gateway.commands._common import add_recording_options, load_model_for, read_recordings
 from gateway.errors import GatewayError
-from gateway.estimate import ALIGN_CHOICES, estimate, metrics_json, plot_estimates
+from gateway.estimate import ALIGN_CHOICES, INITIAL_STATES, estimate, metrics_json, plot_estimates
 from gateway.prepare import INITIAL_CHOICES
 from gateway.profile import load_profile
+from gateway.recording import continued
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -32,6 +33,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--align", choices=ALIGN_CHOICES, default="start",
                    help="measured zero: equal to the estimate at the first measured window (default), as "
                         "recorded (none), or best constant offset (optimistic)")
+    p.add_argument("--initial-state", choices=INITIAL_STATES, default="rest",
+                   help="the model's state at the start: at rest (default), or fitted to the first hour of measured "
+                        "displacement as free decays of its slow modes (fit: a recording that starts warm)")
+    p.add_argument("--history", metavar="RECORDING",
+                   help="a recording that ended before the first one (the previous day): the model runs over it "
+                        "first, so the recording starts in the state it left; with several recordings, each "
+                        "one is the next one's history")
     add_recording_options(p)
     p.set_defaults(func=run)
 
@@ -41,7 +49,15 @@ def run(args: argparse.Namespace) -> int:
     profile = load_profile(args.profile)
     model, model_path = load_model_for(profile, args.model)
     recs = read_recordings(args.recordings, profile, period_s=args.period_s, require_displacement=False)
-    ests = [estimate(model, r, initial=args.initial, gap_policy=args.gap_policy, align=args.align) for r in recs]
+    history = None
+    if args.history:
+        history = read_recordings([args.history], profile, period_s=args.period_s, require_displacement=False)[0]
+    ests = []
+    for r in recs:
+        ests.append(estimate(model, r, initial=args.initial, gap_policy=args.gap_policy, align=args.align,
+                             history=history, initial_state=args.initial_state))
+        if history is not None:
+            history = continued(history, r)
     if args.output:
         out = Path(args.output)
         meta = {"model": str(model_path), "profile": str(profile.path)}

@@ -11,9 +11,11 @@
 from __future__ import annotations
 
 import math
+import re
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -45,9 +47,10 @@ from gateway.diagnose.locate import (
 from gateway.diagnose.refit import Reidentified, path_corrections, reidentify
 from gateway.diagnose.search import Options, SearchResult, search
 from gateway.diagnose.select import make_blocks
+from gateway.estimate import Estimate, estimate
 from gateway.model.model import ThermalModel
 from gateway.profile import Profile
-from gateway.recording import Recording
+from gateway.recording import Recording, continued
 
 
 @dataclass(kw_only=True)
@@ -274,3 +277,113 @@ def _monotonic(st: Stack, factor: str) -> bool:
         tv += float(np.sum(np.abs(np.diff(sm))))
         rng += float(np.ptp(sm))
     return rng > 0 and tv < 3 * rng
+
+
+# ------------------------------------------------------------------------------------------- validation --
+@dataclass(kw_only=True)
+class Validation:
+    """A recording never used for fitting or selection, estimated with the identified and the written model.
+
+    Both estimates are exactly what ``cncgw estimate`` gives with the same settings (``settings``): the
+    report's figures can be reproduced with the written model file.
+    """
+
+    recording: str
+    label: str
+    start: str  # how the model's state at the start was set, in words
+    settings: dict[str, str]
+    before: Estimate
+    after: Estimate
+
+
+def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence[Recording] = (),
+             history: Recording | None = None, gap_policy: str = "hold") -> list[Validation]:
+    """Estimate ``recordings`` with the identified and the written model, as ``cncgw estimate`` would.
+
+    The model's state at each recording's start: carried from the recordings that ran just before it (any
+    of ``earlier`` and ``recordings`` that ends one window before it starts, and so on back: what
+    ``cncgw run`` does with its stored history), or from ``history`` for the first; else, when the
+    recording starts warm (:func:`starts_warm`), fitted to its first hour; else at rest.
+    """
+    pool = [*earlier, *recordings]
+    out = []
+    for k, rec in enumerate(recordings):
+        chain = _preceding(rec, pool)
+        if not chain and history is not None and k == 0:
+            chain = [history]
+        hist = None
+        for part in chain:
+            hist = part if hist is None else continued(hist, part)
+        initial_state = "rest"
+        if hist is not None:
+            start = f"carried from {', '.join(recording_label(p.source) for p in chain)} (ran just before it)"
+        else:
+            warm = starts_warm(d.model, rec, gap_policy=gap_policy)
+            if warm:
+                initial_state = "fit"
+                start = f"estimated from its first hour: it starts warm ({warm})"
+            else:
+                start = "at rest (it starts with the machine in equilibrium)"
+        kw = {"gap_policy": gap_policy, "history": hist, "initial_state": initial_state}
+        before = estimate(d.model, rec, **kw)
+        after = estimate(d.extended, rec, **kw)
+        out.append(Validation(recording=rec.source, label=recording_label(rec.source), start=start,
+                              settings=dict(after.settings), before=before, after=after))
+    return out
+
+
+def _preceding(rec: Recording, pool: Sequence[Recording]) -> list[Recording]:
+    """The recordings that ran just before ``rec``, each ending one window before the next starts, oldest first."""
+    chain: list[Recording] = []
+    cur = rec
+    while True:
+        prev = next((p for p in pool if p is not cur and p not in chain and len(p) and len(cur)
+                     and abs(p.period_s - cur.period_s) < 1e-9 * cur.period_s
+                     and 0.5 * cur.period_s < cur.time_s[0] - p.time_s[-1] <= 1.5 * cur.period_s), None)
+        if prev is None:
+            return chain[::-1]
+        chain.append(prev)
+        cur = prev
+
+
+def starts_warm(model: ThermalModel, rec: Recording, *, gap_policy: str = "hold") -> str:
+    """Why ``rec`` does not start in equilibrium ("" when it seems to).
+
+    Working at its first window, or a displacement that moves in its first hour far more than the model
+    started at rest predicts.
+    """
+    covered = model.info.get("deviation_range", {}) or {}
+    for f in model.factors:
+        v = rec.factors.get(f)
+        if v is None or not np.isfinite(v).any():
+            continue
+        first = float(v[np.isfinite(v)][0]) - float(model.reference.get(f, 0.0))
+        lo, hi = covered.get(f, [0.0, 0.0])
+        span = max(abs(float(lo)), abs(float(hi)))
+        if span > 0 and abs(first) > 0.1 * span:
+            unit = f" {model.units[f]}" if model.units.get(f) else ""
+            return f"{f} is {first:+.4g}{unit} from its rest level at the first window"
+    e = estimate(model, rec, gap_policy=gap_policy)
+    rel = e.time_s - e.time_s[0]
+    hour = rel <= 3600.0
+    for i, a in enumerate(model.axes):
+        y = e.measured[i]
+        ok = hour & np.isfinite(y)
+        if ok.sum() < 5:
+            continue
+        d = np.diff(y[np.isfinite(y)])
+        sigma = float(np.median(np.abs(d - np.median(d)))) / 0.6745 / math.sqrt(2) if d.size else 0.0
+        moved = float(np.ptp(y[ok]))
+        predicted = float(np.ptp(e.estimated[i][ok]))
+        if moved > max(6.0 * sigma, 3.0 * predicted, 1e-9):
+            return (f"axis {a} moves {moved:.3g} um in the first hour where the model, started at rest, predicts "
+                    f"{predicted:.3g} um")
+    return ""
+
+
+def recording_label(source: str) -> str:
+    """A short name for a recording: its file's stem, or "day 7" for the part of a file split by a column."""
+    m = re.search(r"\[([^=\]]+)=([^\]]+)\]$", source)
+    if m:
+        return f"{m.group(1)} {m.group(2)}"
+    return Path(source).stem if source else "recording"

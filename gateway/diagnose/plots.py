@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from gateway.diagnose.api import Diagnosis
+from gateway.diagnose.api import Diagnosis, Validation, recording_label
 from gateway.diagnose.locate import spectrum
+from gateway.diagnose.report import written_terms
 
 
 def _hours(d: Diagnosis) -> np.ndarray:
@@ -35,14 +37,17 @@ def _separators(ax, d: Diagnosis, h: np.ndarray) -> None:
         ax.axvline(h[a], color="k", lw=0.6, ls=":")
 
 
-def write_figures(d: Diagnosis, out_dir: Path) -> list[str]:
-    """Write the PNGs into ``out_dir``; return their file names."""
+def write_figures(d: Diagnosis, out_dir: Path, *, validations: Sequence[Validation] = (), hedge: str = "") -> list[str]:
+    """Write the PNGs into ``out_dir``; return their file names. ``hedge``: a caveat every figure carries."""
     plt = _plt()
     st = d.stack
     h = _hours(d)
     axes = [a for a in d.model.axes if a in d.findings]
     names = []
-    after = {a: sum((t.contribution for t in d.result.terms.get(a, [])), np.zeros(st.n)) for a in axes}
+    terms = written_terms(d)
+    written = d.comparison.written
+    before = d.comparison.candidates["identified"]
+    tail = f"\n{hedge}" if hedge else ""
 
     fig, grid = plt.subplots(len(axes), 1, figsize=(11, 2.8 * len(axes)), sharex=True, squeeze=False)
     for k, a in enumerate(axes):
@@ -51,9 +56,13 @@ def write_figures(d: Diagnosis, out_dir: Path) -> list[str]:
         f = d.findings[a]
         meas = st.base[i] + f.residual
         ax.plot(h, meas, color="0.3", lw=0.8, label="measured (zero at each start)")
-        ax.plot(h, st.base[i], color="C0", lw=1.2, label="model before")
-        if after[a].any():
-            ax.plot(h, st.base[i] + after[a], color="C3", lw=1.2, ls="--", label="model after")
+        ax.plot(h, st.base[i], color="C0", lw=1.2, label="identified model")
+        if written is not before and d.reidentified is not None and written.key == "reidentified":
+            shift = _zero_at_start(st, d.reidentified.prediction[i], meas)
+            ax.plot(h, d.reidentified.prediction[i] + shift, color="C3", lw=1.2, ls="--", label="written model")
+        elif written is not before:
+            extra = sum((t.contribution for t in terms.get(a, [])), np.zeros(st.n))
+            ax.plot(h, st.base[i] + extra, color="C3", lw=1.2, ls="--", label="written model")
         for w in f.windows:
             ax.axvspan(h[w.start], h[w.stop - 1], color="C1", alpha=0.15, lw=0)
         for s in f.steps:
@@ -61,9 +70,9 @@ def write_figures(d: Diagnosis, out_dir: Path) -> list[str]:
         _separators(ax, d, h)
         ax.set_ylabel(f"{a} (um)")
     grid[0, 0].legend(fontsize=7, loc="best")
-    grid[0, 0].set_title("measured vs model before and after; shaded: residual outside its noise band; "
-                         "violet: sensor steps", fontsize=9)
-    grid[-1, 0].set_xlabel("time (h, recordings end to end)")
+    grid[0, 0].set_title("measured vs the identified and the written model; shaded: residual outside its noise band; "
+                         "violet: sensor steps" + tail, fontsize=9)
+    grid[-1, 0].set_xlabel("time (h, recordings end to end: " + ", ".join(_labels(d)) + ")")
     fig.tight_layout()
     fig.savefig(out_dir / "fit.png", dpi=100)
     plt.close(fig)
@@ -72,24 +81,31 @@ def write_figures(d: Diagnosis, out_dir: Path) -> list[str]:
     fig, grid = plt.subplots(len(axes), 1, figsize=(11, 2.4 * len(axes)), sharex=True, squeeze=False)
     for k, a in enumerate(axes):
         ax = grid[k, 0]
-        held = d.result.held.get(a)
-        if held is not None:
-            i = d.model.axes.index(a)
-            r = st.y[i][held.rows] - st.base[i][held.rows]
-            ax.plot(h[held.rows], r - held.before, color="C0", lw=0.8, label="before (held out)")
-            ax.plot(h[held.rows], r - held.after, color="C3", lw=0.8, label="after (held out)")
+        i = d.model.axes.index(a)
+        for c, color in ((before, "C0"), (written, "C3")):
+            p = c.prediction.get(a)
+            if p is None or (c is written and c is before):
+                continue
+            ax.plot(h, st.y[i] - p, color=color, lw=0.8, label=f"{c.key} (held out)")
         ax.axhline(0, color="k", lw=0.5)
         band = d.findings[a].noise.band_um
         ax.axhspan(-band, band, color="0.85", lw=0)
         _separators(ax, d, h)
         ax.set_ylabel(f"{a} residual (um)")
     grid[0, 0].legend(fontsize=7, loc="best")
-    grid[0, 0].set_title("held-out residual (each block predicted from the others; grey: noise band)", fontsize=9)
+    grid[0, 0].set_title("held-out residual (each block predicted from the others; grey: noise band)" + tail,
+                         fontsize=9)
     grid[-1, 0].set_xlabel("time (h)")
     fig.tight_layout()
     fig.savefig(out_dir / "residual.png", dpi=100)
     plt.close(fig)
     names.append("residual.png")
+    after = {}
+    for a in axes:
+        i = d.model.axes.index(a)
+        p = written.prediction.get(a)
+        q = before.prediction.get(a)
+        after[a] = np.nan_to_num(p - q) if p is not None and q is not None else np.zeros(st.n)
 
     fig, grid = plt.subplots(1, len(axes), figsize=(4 * len(axes), 3.2), squeeze=False)
     for k, a in enumerate(axes):
@@ -110,11 +126,11 @@ def write_figures(d: Diagnosis, out_dir: Path) -> list[str]:
     plt.close(fig)
     names.append("spectrum.png")
 
-    if any(d.result.terms.get(a) for a in axes):
+    if any(terms.get(a) for a in axes):
         fig, grid = plt.subplots(len(axes), 1, figsize=(11, 2.2 * len(axes)), sharex=True, squeeze=False)
         for k, a in enumerate(axes):
             ax = grid[k, 0]
-            for t in d.result.terms.get(a, []):
+            for t in terms.get(a, []):
                 if not t.trial.hypothesis.artefact:
                     ax.plot(h, t.contribution, lw=1.0, label=t.trial.hypothesis.key)
             ax.axhline(0, color="k", lw=0.5)
@@ -128,4 +144,46 @@ def write_figures(d: Diagnosis, out_dir: Path) -> list[str]:
         fig.savefig(out_dir / "contributions.png", dpi=100)
         plt.close(fig)
         names.append("contributions.png")
+    if validations:
+        names.append(_validation_figure(plt, validations, out_dir, tail))
     return names
+
+
+def _validation_figure(plt, validations: Sequence[Validation], out_dir: Path, tail: str) -> str:
+    axes = list(validations[0].after.axes)
+    fig, grid = plt.subplots(len(axes), len(validations), figsize=(min(4 * len(validations), 16) + 2, 2.4 * len(axes)),
+                             squeeze=False, sharey="row")
+    for c, v in enumerate(validations):
+        h = (v.after.time_s - v.after.time_s[0]) / 3600.0
+        for r, a in enumerate(axes):
+            ax = grid[r, c]
+            i = axes.index(a)
+            ax.plot(h, v.after.measured[i], color="0.3", lw=0.8, label="measured")
+            ax.plot(h, v.before.estimated[i], color="C0", lw=1.0, label="identified")
+            ax.plot(h, v.after.estimated[i], color="C3", lw=1.0, ls="--", label="written")
+            if r == 0:
+                ax.set_title(v.label, fontsize=8)
+            if c == 0:
+                ax.set_ylabel(f"{a} (um)")
+            if r == len(axes) - 1:
+                ax.set_xlabel("h")
+    grid[0, 0].legend(fontsize=6)
+    fig.suptitle("validation: recordings never fitted, as cncgw estimate gives them" + tail, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out_dir / "validation.png", dpi=100)
+    plt.close(fig)
+    return "validation.png"
+
+
+def _labels(d: Diagnosis) -> list[str]:
+    return [recording_label(s) for s in d.stack.sources]
+
+
+def _zero_at_start(st, pred: np.ndarray, meas: np.ndarray) -> np.ndarray:
+    """Per recording, the constant that puts ``pred`` on the measured zero of its first windows."""
+    out = np.zeros(st.n)
+    for a, b in st.bounds:
+        ok = np.flatnonzero(np.isfinite(meas[a:b]))[:10]
+        if ok.size:
+            out[a:b] = float(np.mean(meas[a:b][ok] - pred[a:b][ok]))
+    return out

@@ -8,8 +8,9 @@ from typing import Any
 
 import numpy as np
 
-from gateway.diagnose.api import Diagnosis, HeldMetrics
-from gateway.diagnose.search import Trial
+from gateway.diagnose.api import Diagnosis, HeldMetrics, Validation, recording_label
+from gateway.diagnose.refit import identification_length_s
+from gateway.diagnose.search import Term, Trial
 
 
 def _num(x: float, fmt: str = ".3g") -> str:
@@ -38,7 +39,8 @@ def _gains(gains: np.ndarray, sd: np.ndarray, labels: Sequence[str]) -> str:
     return "; ".join(parts)
 
 
-def to_json(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = "") -> dict[str, Any]:
+def to_json(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = "",
+            validations: Sequence[Validation] = ()) -> dict[str, Any]:
     """The report as a JSON-ready dictionary."""
     def metrics(m: Mapping[str, HeldMetrics]) -> dict[str, Any]:
         return {a: {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
@@ -69,21 +71,78 @@ def to_json(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = "") 
             "spectral_lines": [vars(ln) for ln in f.lines],
             "correlations": [vars(c) for c in f.correlations],
         }
+    ad = d.adequacy
     return _plain({
-        "recordings": list(d.stack.sources), "axes": list(d.model.axes), "wall_s": d.wall_s,
+        "recordings": list(d.stack.sources), "labels": [recording_label(s) for s in d.stack.sources],
+        "axes": list(d.model.axes), "wall_s": d.wall_s,
         "options": vars(d.options), "conclusions": d.conclusions, "notes": d.notes,
+        "adequacy": {"judged": ad.judged, "fit": ad.fit, "unseen": list(ad.unseen),
+                     "axes": {a: vars(x) for a, x in ad.axes.items()}, "resting_drift": {a: vars(x) for a, x in
+                                                                                          ad.drift.items()}},
         "accepted": [t.hypothesis.key for t in d.result.accepted if not t.hypothesis.artefact],
         "artefacts": d.artefacts,
-        "held_out": {"before": metrics(d.before), "after": metrics(d.after),
-                     "after_physics_only": metrics(d.after_physics)},
+        "written": d.comparison.chosen,
+        "candidates": {k: {"title": c.title, "passes": c.passes, "verdict": c.verdict, "p": c.p, "gain_share": c.gain,
+                           "held_out_sse_um2": c.sse, "metrics": metrics(c.metrics)}
+                       for k, c in d.comparison.candidates.items()},
+        "held_out": {"before": metrics(d.before), "after": metrics(d.after)},
+        "validation": [validation_json(v) for v in validations],
         "terms": {a: [{"hypothesis": t.trial.hypothesis.key, "setting": dict(t.setting.params),
                        "gains": [float(g) for g in t.gains],
                        "components": [c.label for c in t.setting.components],
                        "contribution_rms_um": float(np.std(t.contribution))} for t in ts]
-                  for a, ts in d.result.terms.items()},
+                  for a, ts in written_terms(d).items()},
+        "at_search_bound": bound_flags(d),
         "findings": findings, "trials": [trial(t) for t in d.result.trials],
         "extended_model": model_file, "derived_inputs": [i.name for i in d.extended.inputs], "figures": list(figures),
     })
+
+
+def validation_json(v: Validation) -> dict[str, Any]:
+    """One validation recording: how it started, the settings, before/after figures per axis."""
+    return {"recording": v.recording, "label": v.label, "start": v.start, "settings": v.settings,
+            "before": v.before.to_json()["axes"], "after": v.after.to_json()["axes"],
+            "notes": list(v.after.notes)}
+
+
+def written_terms(d: Diagnosis) -> dict[str, list[Term]]:
+    """The accepted terms as they are in the written model (refitted with the paths when it re-identified)."""
+    if d.comparison.chosen == "reidentified" and d.reidentified is not None:
+        return d.reidentified.terms
+    if d.comparison.chosen == "terms":
+        return d.result.terms
+    return {}
+
+
+def bound_flags(d: Diagnosis) -> list[str]:
+    """Parameters that ended on the edge of what was searched: the true value may lie beyond it."""
+    out = []
+    for t in d.result.accepted:
+        for a, e in t.evidence.items():
+            if not e.included or e.setting is None:
+                continue
+            grid = t.hypothesis.settings.get(a, [])
+            for k, v in e.setting.params:
+                values = sorted({float(x) for x in (s.param(k) for s in grid) if isinstance(x, float)})
+                if isinstance(v, float) and len(values) > 2 and v in (values[0], values[-1]):
+                    edge = "lowest" if v == values[0] else "highest"
+                    out.append(f"{t.hypothesis.key} on {a}: {k} = {_seconds(k, v)} is the {edge} value searched "
+                               f"({_seconds(k, values[0])} .. {_seconds(k, values[-1])}): the true value may lie "
+                               "beyond")
+    if d.reidentified is not None and d.comparison.chosen == "reidentified":
+        hi = identification_length_s(d.model)
+        for p in d.extended.paths.values():
+            if p.factor in d.model.factors and any(abs(math.log(t / hi)) < 0.01 for term in p.terms
+                                                   for t in term.time_constants_s):
+                out.append(f"path {p.axis}/{p.factor}: a time constant at the longest allowed ({hi / 3600:.3g} h, the "
+                           "identification runs' length): slower heat is for a slow mode to claim")
+    return out
+
+
+def _seconds(key: str, v: float) -> str:
+    if not key.endswith("_s"):
+        return f"{v:.4g}"
+    return f"{v / 3600:.3g} h" if v >= 5400 else f"{v / 60:.3g} min"
 
 
 def _finite(x: float) -> float | None:
@@ -105,27 +164,61 @@ def _plain(x: Any) -> Any:
     return x
 
 
-def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = "", title: str = "") -> str:
+def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = "", title: str = "",
+                validations: Sequence[Validation] = (), hedges: Sequence[str] = ()) -> str:
     """The report as Markdown."""
     L: list[str] = [f"# Diagnosis{': ' + title if title else ''}", ""]
-    L += [f"Recordings: {', '.join(d.stack.sources)}. Model axes: {', '.join(d.model.axes)}. "
+    labels = [recording_label(s) for s in d.stack.sources]
+    L += [f"Recordings: {', '.join(labels)}. Model axes: {', '.join(d.model.axes)}. "
           f"{len(d.hypotheses)} hypotheses, {len(d.result.trials)} trials in {d.wall_s:.1f} s.", ""]
-    L += ["## Conclusions", ""] + [f"- {c}" for c in d.conclusions] + [""]
+    L += [f"> {h}" for h in hedges] + ([""] if hedges else [])
+    L += ["## Verdict", ""] + [f"- {c}" for c in d.adequacy.lines()] + [""]
+    L += ["## Conclusions", ""] + [f"- {c}" for c in d.conclusions if c not in d.adequacy.lines()] + [""]
     if d.notes:
         L += ["Notes on the data:", ""] + [f"- {n}" for n in d.notes] + [""]
 
-    L += ["## Held-out error, before and after", "",
-          "Each block of time is predicted from a fit on the other blocks (the first block of each recording "
-          "only fits the initial state). Before: the model as it is (a free offset per recording: sensors are "
-          "zeroed anywhere). After: with the accepted physics, and measurement artefacts removed.", "",
-          "| axis | windows | RMS before | RMS after | max abs error before | after | peak | % of peak before | after "
-          "| RMS, physics only |", "|---|---|---|---|---|---|---|---|---|---|"]
-    for a, b in d.before.items():
-        af, ph = d.after[a], d.after_physics[a]
-        L.append(f"| {a} | {b.windows} | {_num(b.rms_um)} um | {_num(af.rms_um)} um | {_num(b.max_abs_error_um)} um "
-                 f"| {_num(af.max_abs_error_um)} um | {_num(b.peak_um)} um | {_num(b.max_error_pct_of_peak, '.1f')} "
-                 f"| {_num(af.max_error_pct_of_peak, '.1f')} | {_num(ph.rms_um)} um |")
+    L += ["## Models compared on held-out blocks", "",
+          "Each block of time is predicted from a fit on the other blocks (the first block of each recording only "
+          "trains): every candidate's gains (a free offset per recording, and the path gains of a re-identified "
+          "model) are refitted without the block, at the time constants chosen on all data. A recording's own "
+          "drift or initial state is fitted while identifying and left out here, as `cncgw estimate` and `cncgw "
+          "run` know nothing of it. The best candidate that passes is written.", "",
+          "| model | verdict | " + " | ".join(f"{a}: RMS / max abs / % of peak" for a in d.model.axes) + " |",
+          "|---|---|" + "---|" * len(d.model.axes)]
+    for c in d.comparison.candidates.values():
+        cells = []
+        for a in d.model.axes:
+            m = c.metrics.get(a)
+            cells.append("-" if m is None else f"{_num(m.rms_um)} / {_num(m.max_abs_error_um)} um / "
+                                               f"{_num(m.max_error_pct_of_peak, '.1f')} %")
+        L.append(f"| {c.title} | {c.verdict} | " + " | ".join(cells) + " |")
     L.append("")
+
+    if validations:
+        L += ["## Validation: recordings never used for fitting or selection", "",
+              "Estimated exactly as `cncgw estimate` does with the settings given, once with the identified model "
+              "and once with the written one (the written model file reproduces these figures).", "",
+              "| recording | start | axis | RMS before | RMS after | max abs before | after | peak | % of peak before "
+              "| after |", "|---|---|---|---|---|---|---|---|---|---|"]
+        for v in validations:
+            for a, m in v.before.metrics.items():
+                n = v.after.metrics.get(a)
+                if n is None:
+                    continue
+                L.append(f"| {v.label} | {v.start} | {a} | {_num(m.rms_um)} um | {_num(n.rms_um)} um | "
+                         f"{_num(m.max_abs_error_um)} um | {_num(n.max_abs_error_um)} um | {_num(m.peak_um)} um | "
+                         f"{_num(m.max_error_pct_of_peak, '.1f')} | {_num(n.max_error_pct_of_peak, '.1f')} |")
+        L.append("")
+        for v in validations:
+            opts = " ".join(f"--{k.replace('_', '-')} {val}" for k, val in v.settings.items()
+                            if k in ("initial_state", "history") and val not in ("rest",))
+            L.append(f"- {v.label}: `cncgw estimate --model {model_file or 'MODEL'} {opts + ' ' if opts else ''}"
+                     f"{v.recording}`")
+        L.append("")
+
+    flags = bound_flags(d)
+    if flags:
+        L += ["Parameters on the edge of the range searched:", ""] + [f"- {f}" for f in flags] + [""]
 
     L += ["## Accepted", ""]
     physics = [t for t in d.result.accepted if not t.hypothesis.artefact]
@@ -138,9 +231,10 @@ def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = 
               f"{100 * t.score:.0f} % (pooled over the axes).", ""]
         for a in t.axes:
             e = t.evidence[a]
-            fin = next((x for x in d.result.terms.get(a, []) if x.trial is t), None)
+            fin = next((x for x in written_terms(d).get(a, []) if x.trial is t), None)
             gains = fin.gains if fin is not None else e.gains
-            labels = [c.label for c in e.setting.components] if e.setting else []
+            setting = fin.setting if fin is not None else e.setting
+            labels = [c.label for c in setting.components] if setting else []
             L.append(f"- {a}: {_params(e.setting.params, e.params_sd) if e.setting else ''}; "
                      f"{_gains(gains, e.gains_sd, labels)}; held-out error down {100 * e.gain:.0f} %, "
                      f"contribution {e.effect_rms_um:.3g} um RMS")
