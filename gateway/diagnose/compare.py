@@ -12,7 +12,9 @@ other blocks at the time constants and settings chosen on all data, and the bloc
 (a recording's own drift or initial state) is fitted while identifying and left out of the scoring, as
 ``cncgw estimate`` and ``cncgw run`` know nothing of it: the figures are what the written model does.
 A candidate passes when its held-out error is lower than the identified model's consistently over the
-blocks (one-sided signed-rank test at ``alpha``) and by at least ``min_gain`` of the squared error.
+blocks (one-sided signed-rank test at ``alpha``) and by at least ``min_gain`` of the squared error. Blocks
+are judged, and figures given, on the recordings the identified model did not train on (its own
+experiments are a fit for it, not a test), or on all when there are no others.
 """
 
 from __future__ import annotations
@@ -53,7 +55,7 @@ class Candidate:
     title: str
     model: ThermalModel
     prediction: dict[str, np.ndarray]  # per axis: held-out predictions of the measurement (NaN where not held out)
-    block_sse: np.ndarray  # (K,) held-out SSE per block, pooled over the axes (um^2)
+    block_sse: np.ndarray  # held-out SSE per judged block, pooled over the axes (um^2)
     metrics: dict[str, HeldMetrics]
     p: float = math.nan  # vs the identified model: one-sided signed-rank over the blocks
     gain: float = 0.0  # share of the identified model's pooled held-out SSE removed
@@ -119,12 +121,24 @@ def compare(stack: Stack, model: ThermalModel, block: np.ndarray, result: Search
             full[rows] = p + shift
             pred[a] = full
         cands[key] = Candidate(key=key, title=title, model=m, prediction=pred, block_sse=sse, metrics=metrics)
+    # judged on what the identified model did not train on: its own experiments' blocks are a fit there, not
+    # a test, and would count against every other candidate; with nothing else given, on every block
+    seen = set(model.info.get("experiments", []) or [])
+    unseen = np.zeros(stack.n, dtype=bool)
+    for name, (lo, hi) in zip(stack.names, stack.bounds, strict=True):
+        unseen[lo:hi] = name not in seen
+    if not (unseen & (block >= 0)).any():
+        unseen[:] = True
+    judged = np.zeros(k, dtype=bool)
+    judged[np.unique(block[unseen & (block >= 0)])] = True
     # the peak is the measured displacement's, offset by what the identified model's scoring took as the zero
     base = cands["identified"]
+    for c in cands.values():
+        c.block_sse = c.block_sse[judged]
     for i, a in enumerate(stack.axes):
         if a not in base.prediction:
             continue
-        held = np.isfinite(base.prediction[a])
+        held = np.isfinite(base.prediction[a]) & unseen
         zero = base.prediction[a][held] - stack.base[i][held]
         measured = stack.y[i][held] - zero
         for c in cands.values():
