@@ -152,7 +152,8 @@ def assess(stack: Stack, model: ThermalModel, sigma_um: dict[str, float]) -> Ade
         if worst is not None and worst[1]["max_error_pct_of_peak"] > 100 * MAX_ERROR_SHARE:
             name, f = worst
             reasons.append(f"max |error| {f['max_abs_error_um']:.3g} um is {f['max_error_pct_of_peak']:.0f} % of the "
-                           f"peak displacement {f['peak_um']:.3g} um in {name} (fit: under {100 * MAX_ERROR_SHARE:.0f} %)")
+                           f"peak displacement {f['peak_um']:.3g} um in {name} "
+                           f"(fit: under {100 * MAX_ERROR_SHARE:.0f} %)")
         predicted = float(np.max(np.abs(p)))
         if predicted > PREDICTION_EXCESS * fig["peak_um"] + band:
             reasons.append(f"it predicts up to {predicted:.3g} um where the machine moved at most "
