@@ -8,8 +8,8 @@ To regenerate it (README, "The bundled model"):
 Identification is a nonconvex fit: on another CPU (another BLAS kernel, another order of floating-point
 sums) it takes another path to a neighbouring optimum, so the digits of a gain are not what a user can
 rely on. What they can: the same structure per axis, every path's static gain within its stated
-uncertainty, and the same predicted displacement on runs the model did not train on, to well under the
-sensors' noise (0.1 um). CI runs this module a second time under another OpenBLAS kernel (dev.py).
+uncertainty, and the same predicted displacement on runs the model did not train on, to under half the
+sensors' noise (0.1 um) or 1 % of the peak. CI runs this module a second time under another OpenBLAS kernel (dev.py).
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ def test_reidentified_model_predicts_held_out_runs_like_the_bundled_one(models, 
     for i, axis in enumerate(bundled.axes):
         peak = float(np.max(np.abs(a.estimated[i])))
         diff = float(np.max(np.abs(a.estimated[i] - b.estimated[i])))
-        assert diff <= max(0.2 * NOISE_UM, 0.01 * peak), (scenario, axis, diff, peak)
+        assert diff <= max(0.5 * NOISE_UM, 0.01 * peak), (scenario, axis, diff, peak)
         # and both are as good as each other against what was measured
         assert b.metrics[axis].rms_um == pytest.approx(a.metrics[axis].rms_um, abs=0.2 * NOISE_UM), (scenario, axis)
 

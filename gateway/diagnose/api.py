@@ -318,7 +318,7 @@ def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence
         if hist is not None:
             start = f"carried from {', '.join(recording_label(p.source) for p in chain)} (ran just before it)"
         else:
-            warm = starts_warm(d.model, rec, gap_policy=gap_policy)
+            warm = starts_warm(d.extended, rec, gap_policy=gap_policy)
             if warm:
                 initial_state = "fit"
                 start = f"estimated from its first hour: it starts warm ({warm})"

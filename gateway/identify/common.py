@@ -123,6 +123,15 @@ class Bounds:
         return [], []
 
 
+def fast_time_constant(theta: Sequence[float]) -> float:
+    """The faster time constant of a two-parameter structure: tau_slow / ratio.
+
+    Never below what a model file may hold: a mode that fast is static at any window length anyway, and a
+    fit must be a model that loads again.
+    """
+    return max(math.exp(theta[0] - theta[1]), limits.TAU_MIN_S)
+
+
 def unit_terms(structure: str, theta: Sequence[float]) -> list[Term]:
     """Unit-gain terms of a structure for nonlinear parameters ``theta`` (log time constants)."""
     if structure == "zero":
@@ -130,7 +139,7 @@ def unit_terms(structure: str, theta: Sequence[float]) -> list[Term]:
     if structure == "first_order":
         return [FirstOrder(gain=1.0, tau_s=math.exp(theta[0]))]
     slow = math.exp(theta[0])
-    fast = slow * math.exp(-theta[1])
+    fast = fast_time_constant(theta)
     if structure == "second_order":
         return [SecondOrder.from_time_constants(gain=1.0, tau1_s=fast, tau2_s=slow)]
     if structure == "two_modes":
@@ -171,11 +180,10 @@ def unit_responses(structure: str, theta: Sequence[float], du: np.ndarray, dt_s:
     if structure == "first_order":
         return [first(math.exp(theta[0]))]
     if structure == "two_modes":
-        slow = math.exp(theta[0])
-        return [first(slow * math.exp(-theta[1])), first(slow)]
+        return [first(fast_time_constant(theta)), first(math.exp(theta[0]))]
     if structure == "second_order" and theta[1] > 0.01:
         slow = math.exp(theta[0])
-        fast = slow * math.exp(-theta[1])
+        fast = fast_time_constant(theta)
         return [(slow * first(slow) - fast * first(fast)) / (slow - fast)]
     out = []
     for term in unit_terms(structure, theta):
