@@ -93,7 +93,8 @@ def to_json(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = "",
                        "contribution_rms_um": float(np.std(t.contribution))} for t in ts]
                   for a, ts in written_terms(d).items()},
         "at_search_bound": bound_flags(d),
-        "findings": findings, "trials": [trial(t) for t in d.result.trials],
+        "findings": findings,
+        "trials": [trial(t) | {"track": name} for name, r in d.results.items() for t in r.trials],
         "extended_model": model_file, "derived_inputs": [i.name for i in d.extended.inputs], "figures": list(figures),
     })
 
@@ -279,16 +280,21 @@ def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = 
             L.append("")
 
     L += ["## Every hypothesis tried", "",
-          "Per axis: share of held-out squared error removed / contribution RMS (um); * = the axis joins.", "",
-          "| round | hypothesis | params | p (Holm) | " + " | ".join(d.model.axes) + " | verdict |",
-          "|---|---|---|---|" + "---|" * len(d.model.axes) + "---|"]
-    for t in sorted(d.result.trials, key=lambda t: (t.round, t.p_holm, -t.score)):
+          "Two searches: `frozen` judges each hypothesis as a term on the identified model; `refit` judges it with "
+          "every path refitted beside it (linearly: each input through a bank of lags), what the model written by "
+          "re-identification does. Ranked by evidence within a round. Per axis: share of held-out squared error "
+          "removed / contribution RMS (um); * = the axis joins.", "",
+          "| search | round | hypothesis | params | p (Holm) | " + " | ".join(d.model.axes) + " | verdict |",
+          "|---|---|---|---|---|" + "---|" * len(d.model.axes) + "---|"]
+    ranked = [(name, t) for name, r in d.results.items()
+              for t in sorted(r.trials, key=lambda t: (t.round, t.p_holm, -t.score))]
+    for name, t in ranked:
         cells = []
         for a in d.model.axes:
             e = t.evidence.get(a)
             mark = "*" if e is not None and e.included else ""
             cells.append("-" if e is None else f"{100 * e.gain:.0f} % / {e.effect_rms_um:.2g}{mark}")
-        L.append(f"| {t.round} | {t.hypothesis.key} | {t.hypothesis.complexity} | {t.p_holm:.2g} | "
+        L.append(f"| {name} | {t.round} | {t.hypothesis.key} | {t.hypothesis.complexity} | {t.p_holm:.2g} | "
                  + " | ".join(cells) + f" | {t.verdict} |")
     L.append("")
     if figures:
