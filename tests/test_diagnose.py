@@ -53,15 +53,16 @@ def baseline():
     return model
 
 
-def old_case(bench, effect: str, seed: int = 1, days: int = 2) -> tuple[Recording, Recording]:
-    """The old protocol's recordings: the effect only in production, the first ``days`` of a run diagnosis
-    sees, and a fresh one it never sees."""
+def old_case(bench, effect: str, seed: int = 1, days: int = 2) -> tuple[Recording, tuple[Recording, Recording]]:
+    """The old protocol's recordings: the effect only in production. The first ``days`` of a run diagnosis
+    sees, and a fresh day it never sees with the day before it (the history a live gateway would have)."""
     from simulators.machine import parse_scenario_text, simulate
 
     plan = bench.old_plan(effect, seed)
     seen = simulate(parse_scenario_text(plan.days["days"], source="seen")).recording()
     fresh = simulate(parse_scenario_text(plan.fresh["fresh"], source="fresh")).recording()
-    return replace(seen.slice(0, days * 1440), source="seen.csv"), replace(fresh.slice(0, 1440), source="fresh.csv")
+    return (replace(seen.slice(0, days * 1440), source="seen.csv"),
+            (replace(fresh.slice(0, 1440), source="before.csv"), replace(fresh.slice(1440, 2880), source="fresh.csv")))
 
 
 def write_csv(rec: Recording, path: Path) -> Path:
@@ -71,16 +72,21 @@ def write_csv(rec: Recording, path: Path) -> Path:
     return path
 
 
-def fresh_rms(model, rec: Recording) -> float:
-    """RMS over the axes of what ``cncgw estimate`` gives on a recording diagnosis never saw."""
-    m = estimate(model, rec).metrics
+def fresh_rms(model, fresh: tuple[Recording, Recording]) -> float:
+    """RMS over the axes of what ``cncgw estimate --history`` gives on a day diagnosis never saw.
+
+    The model runs through the day before first, as a live gateway does with its records: a recorded room
+    temperature has been acting long before any recording starts.
+    """
+    history, day = fresh
+    m = estimate(model, day, history=history).metrics
     return math.sqrt(sum(x.rms_um ** 2 for x in m.values()) / len(m))
 
 
 @pytest.fixture(scope="module")
 def room_case(bench, baseline):
     """Room temperature recorded, concealed: the recording diagnosis sees, one it never sees, its diagnosis."""
-    seen, fresh = old_case(bench, "room recorded")
+    seen, fresh = old_case(bench, "room recorded", days=4)
     d = diagnose(baseline, [seen], factors=factor_infos(load_profile(SIM_PROFILE)))
     return seen, fresh, d
 
@@ -144,7 +150,7 @@ def test_nothing_is_accepted_when_nothing_is_missing(bench, baseline):
 # ------------------------------------------------------------------------------------------------ CLI ---
 def test_cli_writes_report_figures_and_a_model_estimate_accepts(tmp_path, baseline, room_case, capsys):
     seen, fresh, _ = room_case
-    seen_csv, fresh_csv = write_csv(seen, tmp_path / "seen.csv"), write_csv(fresh, tmp_path / "fresh.csv")
+    seen_csv, fresh_csv = write_csv(seen, tmp_path / "seen.csv"), write_csv(fresh[1], tmp_path / "fresh.csv")
     model = save_model(baseline, tmp_path / "base.model.toml")
     out = tmp_path / "report"
     code = main(["diagnose", "--profile", str(SIM_PROFILE), "--model", str(model), str(seen_csv), "-o", str(out),

@@ -156,7 +156,11 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
         # every path refitted beside it (the paths corrected: what the missing physics did to identification);
         # the false-positive budget is split between them
         tracks: dict[str, list[np.ndarray]] = {"frozen": []}
-        if options.reidentify:
+        # re-identifying every path needs what pinned them down first: production alone mixes the factors in
+        # one schedule's ratios, and a refit of all paths on it predicts another schedule worse
+        missing = missing_experiments(model, stack)
+        refit = options.reidentify and not missing
+        if refit:
             tracks["refit"] = path_corrections(stack, model)
         sub = replace(options, alpha=options.alpha / len(tracks), alpha_axis=options.alpha_axis / len(tracks))
         results = {}
@@ -165,7 +169,7 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
                                    progress=(lambda m, n=name: progress(f"{n}: {m}")) if progress else None)
         frozen = extend_model(model, results["frozen"].terms)
         reid = None
-        if options.reidentify:
+        if refit:
             reid = reidentify(stack, model, results["refit"].accepted, artefacts=artefacts, progress=progress)
         comparison = compare(stack, model, block, results["frozen"], frozen, reid, artefacts=artefacts,
                              options=options)
@@ -184,8 +188,26 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
                      results=results, options=options, adequacy=adequacy, comparison=comparison, reidentified=reid,
                      block=block, notes=list(stack.notes))
     diag.conclusions = conclusions(diag, block)
+    if options.reidentify and missing:
+        which = ("the model names no identification experiments" if missing == [NONE_NAMED] else
+                 "its identification experiments are not among these recordings "
+                 f"({', '.join(missing[:4])}{', ...' if len(missing) > 4 else ''} missing)")
+        diag.conclusions.append(f"the model was not re-identified: {which}, and its paths cannot be identified "
+                                "again from production alone; pass the experiments too to let diagnosis refit "
+                                "every path")
     diag.wall_s = time.perf_counter() - t0
     return diag
+
+
+NONE_NAMED = "(none named)"
+
+
+def missing_experiments(model: ThermalModel, stack: Stack) -> list[str]:
+    """The model's identification experiments (its ``[info] experiments``) not among the recordings."""
+    listed = [str(n) for n in (model.info.get("experiments", []) or [])]
+    if not listed:
+        return [NONE_NAMED]
+    return [n for n in listed if n not in stack.names]
 
 
 def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
@@ -252,7 +274,8 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
         out.append(f"the longest recording is {span_h:.0f} h: within one recording a daily cycle cannot be told apart "
                    "from a slow drift or from the work schedule; record over several days, including an idle one")
     days = total_h / 24.0
-    if not any(t.hypothesis.family == "room_daily" for t in physics) and days < DAYS_FOR_DAILY:
+    daily = any(h.family == "room_daily" for h in d.hypotheses)
+    if daily and not any(t.hypothesis.family == "room_daily" for t in physics) and days < DAYS_FOR_DAILY:
         out.append(f"these recordings span {days:.1f} day(s) in all: a daily cycle (the room) needs at least "
                    f"{DAYS_FOR_DAILY:g} days, including an idle one, to be told from the work schedule and from a "
                    "slow drift")
