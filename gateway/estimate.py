@@ -46,8 +46,8 @@ def error_figures(err: np.ndarray, measured: np.ndarray) -> dict[str, Any]:
 
 
 @dataclass(frozen=True, kw_only=True)
-class AxisMetrics:
-    """How well one axis was estimated: errors over the windows that have a measurement."""
+class AxisFigures:
+    """Errors of one axis over some windows: RMS, max |error|, peak |displacement|, max error as % of peak."""
 
     axis: str
     windows: int
@@ -55,6 +55,12 @@ class AxisMetrics:
     max_abs_error_um: float
     peak_um: float
     max_error_pct_of_peak: float
+
+
+@dataclass(frozen=True, kw_only=True)
+class AxisMetrics(AxisFigures):
+    """How well one axis was estimated: errors over the windows that have a measurement."""
+
     offset_um: float  # what alignment subtracted from the measurement
 
     def line(self) -> str:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gateway.diagnose.data import Stack
-from gateway.estimate import LEAD_IN_MAX, error_figures
+from gateway.estimate import LEAD_IN_MAX, AxisFigures, error_figures
 from gateway.model.model import ThermalModel
 
 #: max |error| beyond this share of the peak |displacement| is unfit for compensation
@@ -38,15 +38,9 @@ REST_SHARE = 0.02
 
 
 @dataclass(frozen=True, kw_only=True)
-class AxisAdequacy:
+class AxisAdequacy(AxisFigures):
     """The model's errors on one axis over the recordings it did not train on, and why it is unfit (if so)."""
 
-    axis: str
-    windows: int
-    rms_um: float
-    max_abs_error_um: float
-    peak_um: float
-    max_error_pct_of_peak: float
     predicted_peak_um: float
     displacement_rms_um: float
     worst: str = ""  # the recording whose max error is the largest share of its peak (the figures above are its)

@@ -29,22 +29,15 @@ from gateway.diagnose.data import Stack
 from gateway.diagnose.refit import Reidentified
 from gateway.diagnose.search import Options, SearchResult, setting_columns
 from gateway.diagnose.select import held_out, one_sided_p
-from gateway.estimate import error_figures
+from gateway.estimate import AxisFigures, error_figures
 from gateway.model.model import ThermalModel
 
 KEYS = ("identified", "terms", "reidentified")
 
 
 @dataclass(frozen=True, kw_only=True)
-class HeldMetrics:
+class HeldMetrics(AxisFigures):
     """Held-out errors of one axis: RMS, max |error|, peak |displacement|, max error as % of peak."""
-
-    axis: str
-    windows: int
-    rms_um: float
-    max_abs_error_um: float
-    peak_um: float
-    max_error_pct_of_peak: float
 
 
 @dataclass(kw_only=True)
