@@ -187,14 +187,7 @@ def _fit_initial_state(model: ThermalModel, time_s: np.ndarray, est: np.ndarray,
     at least 10 minutes: faster ones have decayed within the hour anyway), and a constant: linear least
     squares per axis, slightly ridged (over one hour slow decays look alike).
     """
-    taus = sorted({t for p in model.paths.values() for term in p.terms for t in term.time_constants_s
-                   if t >= 600.0}, reverse=True)
-    chosen: list[float] = []
-    for t in taus:
-        if all(abs(math.log10(t / c)) >= 0.5 for c in chosen):
-            chosen.append(t)
-        if len(chosen) == INITIAL_FIT_MODES:
-            break
+    chosen = initial_state_taus(model)
     rel = time_s - time_s[0] + (time_s[1] - time_s[0] if len(time_s) > 1 else 0.0)
     first = rel <= INITIAL_FIT_S
     out = est.copy()
@@ -203,20 +196,42 @@ def _fit_initial_state(model: ThermalModel, time_s: np.ndarray, est: np.ndarray,
     D = np.column_stack([np.exp(-rel / t) for t in chosen])
     fitted = []
     for i, a in enumerate(model.axes):
-        ok = first & np.isfinite(measured[i])
-        if ok.sum() < len(chosen) + 3:
+        coef = initial_state_fit(measured[i] - est[i], D, first)
+        if coef is None:
             continue
-        X = np.column_stack([np.ones(int(ok.sum())), D[ok]])
-        r = measured[i, ok] - est[i, ok]
-        scale = np.linalg.norm(X, axis=0)
-        Xs = X / scale
-        coef = np.linalg.solve(Xs.T @ Xs + 1e-6 * np.eye(X.shape[1]), Xs.T @ r) / scale
         out[i] = est[i] + D @ coef[1:]
         fitted.append(a)
     modes = ", ".join(f"{t / 3600:.3g} h" for t in chosen)
     return out, (f"initial state estimated from the first {INITIAL_FIT_S / 3600:g} h of measured displacement "
                  f"(free decays of the modes {modes} on {', '.join(fitted) or 'no axis'}): the recording starts "
                  "warm; that hour scores the fit, not the model")
+
+
+def initial_state_taus(model: ThermalModel) -> list[float]:
+    """The time constants an initial state is fitted with: the model's slowest, half a decade apart, >= 10 min."""
+    taus = sorted({t for p in model.paths.values() for term in p.terms for t in term.time_constants_s
+                   if t >= 600.0}, reverse=True)
+    chosen: list[float] = []
+    for t in taus:
+        if all(abs(math.log10(t / c)) >= 0.5 for c in chosen):
+            chosen.append(t)
+        if len(chosen) == INITIAL_FIT_MODES:
+            break
+    return chosen
+
+
+def initial_state_fit(residual: np.ndarray, decays: np.ndarray, first: np.ndarray) -> np.ndarray | None:
+    """(constant, decay gains) fitted to ``residual`` over the ``first`` windows (None: too few measured).
+
+    Linear least squares on scaled columns, slightly ridged: over one hour slow decays look alike.
+    """
+    ok = first & np.isfinite(residual)
+    if ok.sum() < decays.shape[1] + 3:
+        return None
+    X = np.column_stack([np.ones(int(ok.sum())), decays[ok]])
+    scale = np.linalg.norm(X, axis=0)
+    Xs = X / scale
+    return np.linalg.solve(Xs.T @ Xs + 1e-6 * np.eye(X.shape[1]), Xs.T @ residual[ok]) / scale
 
 
 def extrapolation_notes(model: ThermalModel, du: np.ndarray, *, margin: float = 1.2) -> list[str]:

@@ -28,6 +28,7 @@ Format (one row per window, normally one minute)::
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import math
 import os
@@ -104,7 +105,24 @@ class Recording:
 
     @property
     def name(self) -> str:
-        return Path(self.source).stem if self.source else "recording"
+        """The file's stem; for a part of a file (``file.csv[day=7]``, see ``--split-by``) with the part."""
+        if not self.source:
+            return "recording"
+        m = re.match(r"^(.*?)(\[[^\]]*\])$", self.source)
+        return Path(m.group(1)).stem + m.group(2) if m else Path(self.source).stem
+
+    def fingerprint(self, factors: Sequence[str]) -> str:
+        """A short hash of the values of ``factors`` and of the displacement columns (time stamps left out).
+
+        The same run read from another file (a day cut out of a longer one, renamed) has the same
+        fingerprint: diagnosis uses it to know which recordings identified a model.
+        """
+        h = hashlib.sha256()
+        for group, names in ((self.factors, factors), (self.displacement, sorted(self.displacement))):
+            for n in names:
+                v = np.asarray(group[n], dtype=np.float64) if n in group else np.zeros(0)
+                h.update(n.encode() + np.where(np.isfinite(v), v, 0.0).tobytes() + np.isfinite(v).tobytes())
+        return h.hexdigest()[:16]
 
     def __len__(self) -> int:
         return len(self.time_s)

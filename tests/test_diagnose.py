@@ -97,7 +97,7 @@ def test_recorded_room_temperature_is_named_located_and_added(baseline, room_cas
     assert d.accepted_physics[0] == "room_recorded:room_c"
     assert any(abs(ln.period_h - 24) < 3 for ln in d.findings["z"].lines)  # the residual shows the day
     assert d.findings["z"].windows
-    assert d.after["z"].rms_um < 0.3 * d.before["z"].rms_um
+    assert d.after["z"].rms_um < 0.5 * d.before["z"].rms_um
     before, after = fresh_rms(baseline, fresh), fresh_rms(d.extended, fresh)
     assert after < 0.7 * before  # at least 30 % lower RMS on a recording diagnosis never saw
     assert "room_c" in [i.name for i in d.extended.inputs]
@@ -116,7 +116,7 @@ def test_the_written_model_predicts_what_diagnosis_scored(room_case):
 
 
 def test_a_slow_mode_beyond_the_identification_runs_is_named(bench, baseline):
-    seen, fresh = old_case(bench, "slow mode")
+    seen, fresh = old_case(bench, "slow mode", days=4)
     d = diagnose(baseline, [seen], factors=factor_infos(load_profile(SIM_PROFILE)))
     assert d.accepted_physics[0].startswith("slow_mode:")
     assert fresh_rms(d.extended, fresh) < 0.7 * fresh_rms(baseline, fresh)

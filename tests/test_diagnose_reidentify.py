@@ -183,7 +183,7 @@ def test_the_written_model_reproduces_the_reported_validation_through_cncgw_esti
     assert reported["rms_um"] < 0.5 * doc["validation"][0]["before"]["z"]["rms_um"]
     md = (out / "report.md").read_text()
     assert "## Validation: recordings never used for fitting or selection" in md
-    assert "## Models compared on held-out blocks" in md
+    assert "## Models compared on held-out data" in md
     assert md.index("## Verdict") < md.index("## Conclusions")
     assert "validation.png" in {p.name for p in out.iterdir()}
 

@@ -77,6 +77,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="a recording that ran just before the first --validate recording: it starts in the state "
                         "this one left (recordings given that end one window before another starts are chained "
                         "that way on their own)")
+    p.add_argument("--use-signal", action="append", default=[], metavar="COLUMN",
+                   help="a recorded column whose meaning you have checked (e.g. a temperature of a known part): a "
+                        "hypothesis on it may be written into the model; other recorded signals are only named "
+                        "(repeatable; room/ambient thermometers are always usable)")
     p.add_argument("--no-reidentify", action="store_true",
                    help="judge hypotheses only as terms on the frozen model and never re-identify its paths "
                         "(the earlier behaviour; faster, wrong when the missing physics acted during identification)")
@@ -99,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     if args.blocks < 3:
         raise UsageError(f"--blocks: expected at least 3 held-out blocks, got {args.blocks}")
     options = Options(alpha=args.alpha, min_effect_share=args.min_effect, min_gain=args.min_gain, blocks=args.blocks,
-                      reidentify=not args.no_reidentify)
+                      reidentify=not args.no_reidentify, use_signals=tuple(args.use_signal))
     out = Path(args.output) if args.output else None
     if out is not None and (out / "report.md").exists() and not args.force:
         raise GatewayError(f"{out}/report.md exists: pass --force to overwrite it")

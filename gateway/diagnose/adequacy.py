@@ -4,7 +4,8 @@ A model identified while something it does not know acted (the room drifting dur
 predict 50-100 um where the machine moved 15-50 um. No term added to it repairs that, and "nothing
 significant is missing" must never be printed over it. Two checks:
 
-- On the recordings the model did not train on (not in its ``[info] experiments``), aligned at their
+- On the recordings the model did not train on (not its identification experiments, known by name or by
+  content: :meth:`~gateway.diagnose.data.Stack.identified`), aligned at their
   start as ``cncgw estimate`` aligns them: the largest error against the peak displacement
   (:data:`MAX_ERROR_SHARE`), predictions beyond anything measured (:data:`PREDICTION_EXCESS`), and a
   residual as large as the displacement itself (:data:`RESIDUAL_SHARE`).
@@ -21,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gateway.diagnose.data import Stack
-from gateway.estimate import LEAD_IN_MAX, AxisFigures, error_figures
+from gateway.diagnose.data import Stack, recording_label
+from gateway.estimate import AxisFigures, error_figures
 from gateway.model.model import ThermalModel
 
 #: max |error| beyond this share of the peak |displacement| is unfit for compensation
@@ -67,14 +68,15 @@ class RestingDrift:
 class Adequacy:
     """The verdict before any hypothesis: per axis on unseen recordings, and drift at rest."""
 
-    unseen: tuple[str, ...]
+    unseen: tuple[str, ...]  # the recordings judged
     axes: dict[str, AxisAdequacy]
     drift: dict[str, RestingDrift]
+    training: bool = False  # no recording the model did not train on: judged on its own experiments
 
     @property
     def judged(self) -> bool:
         """Whether any recording the model did not train on was there to judge it."""
-        return bool(self.axes)
+        return bool(self.axes) and not self.training
 
     @property
     def fit(self) -> bool:
@@ -87,13 +89,15 @@ class Adequacy:
     def lines(self) -> list[str]:
         """Plain sentences, the verdict first."""
         out = []
-        if not self.judged:
-            out.append("the model's fitness for compensation cannot be judged: every recording given identified it; "
-                       "pass recordings it has not seen (production days with measured displacement)")
-        elif not self.fit:
+        where = (f"even on the {len(self.unseen)} recording(s) it was identified on" if self.training else
+                 f"on {len(self.unseen)} recording(s) it did not train on")
+        if self.axes and not self.fit:
             why = "; ".join(f"axis {a}: {', '.join(x.reasons)}" for a, x in self.axes.items() if x.reasons)
-            out.append(f"this model is not fit for compensation: on {len(self.unseen)} recording(s) it did not "
-                       f"train on, {why}")
+            out.append(f"this model is not fit for compensation: {where}, {why}")
+        elif not self.judged:
+            out.append("the model's fitness for compensation cannot be judged: every recording given identified it "
+                       "(there it fits); pass recordings it has not seen (production days with measured "
+                       "displacement)")
         else:
             worst = max(self.axes.values(), key=lambda x: x.max_error_pct_of_peak)
             out.append(f"on {len(self.unseen)} recording(s) it did not train on, the model stays within "
@@ -111,8 +115,10 @@ class Adequacy:
 
 def assess(stack: Stack, model: ThermalModel, sigma_um: dict[str, float]) -> Adequacy:
     """Judge ``model`` (its prediction is ``stack.base``) before any hypothesis; ``sigma_um``: noise per axis."""
-    seen = set(model.info.get("experiments", []) or [])
-    unseen = [r for r, name in enumerate(stack.names) if name not in seen]
+    unseen = [r for r, seen in enumerate(stack.identified(model)) if not seen]
+    training = not unseen  # nothing else given: judged on its own experiments (if even they fail, it is unfit)
+    if training:
+        unseen = list(range(len(stack.bounds)))
     axes: dict[str, AxisAdequacy] = {}
     for i, a in enumerate(stack.axes):
         parts = []  # (recording, error, measured, predicted) per unseen recording, aligned as estimate aligns
@@ -122,12 +128,12 @@ def assess(stack: Stack, model: ThermalModel, sigma_um: dict[str, float]) -> Ade
             ok = np.isfinite(y)
             if not ok.any():
                 continue
-            lead = _lead_in(stack, lo, hi) & ok
+            lead = stack.lead_in(r) & ok
             if not lead.any():
                 lead = np.zeros_like(ok)
                 lead[int(np.flatnonzero(ok)[0])] = True
             offset = float(np.mean(y[lead] - p[lead]))
-            parts.append((stack.names[r], (y - offset - p)[ok], (y - offset)[ok], p[ok]))
+            parts.append((recording_label(stack.sources[r]), (y - offset - p)[ok], (y - offset)[ok], p[ok]))
         if not parts:
             continue
         err = np.concatenate([e for _, e, _, _ in parts])
@@ -164,21 +170,8 @@ def assess(stack: Stack, model: ThermalModel, sigma_um: dict[str, float]) -> Ade
                                displacement_rms_um=disp_rms, worst=worst[0] if worst else "", reasons=tuple(reasons))
     drift = {a: resting_drift(stack, i, sigma_um.get(a, 0.0)) for i, a in enumerate(stack.axes)
              if np.isfinite(stack.y[i]).any()}
-    return Adequacy(unseen=tuple(stack.names[r] for r in unseen), axes=axes, drift=drift)
-
-
-def _lead_in(stack: Stack, lo: int, hi: int) -> np.ndarray:
-    """The idle windows at a recording's start (at most LEAD_IN_MAX), as ``cncgw estimate`` aligns on them."""
-    out = np.zeros(hi - lo, dtype=bool)
-    moving = np.zeros(hi - lo, dtype=bool)
-    for f in stack.factors:
-        u = stack.du[f][lo:hi]
-        size = float(np.max(np.abs(u))) if u.size else 0.0
-        if size > 0:
-            moving |= np.abs(u) > 0.01 * size
-    first = np.flatnonzero(moving)
-    out[: max(1, min(int(first[0]) if first.size else hi - lo, LEAD_IN_MAX))] = True
-    return out
+    return Adequacy(unseen=tuple(recording_label(stack.sources[r]) for r in unseen), axes=axes, drift=drift,
+                    training=training)
 
 
 def resting_drift(stack: Stack, axis: int, sigma_um: float) -> RestingDrift:
@@ -215,8 +208,8 @@ def resting_drift(stack: Stack, axis: int, sigma_um: float) -> RestingDrift:
                     moved = slope * float(t_h[-1] - t_h[0])
                     if abs(moved) > band:
                         drifting += 1
-                        if stack.names[r] not in where:
-                            where.append(stack.names[r])
+                        if recording_label(stack.sources[r]) not in where:
+                            where.append(recording_label(stack.sources[r]))
                         if abs(moved) > abs(largest):
                             largest, rate = moved, slope
             k = end

@@ -11,11 +11,9 @@
 from __future__ import annotations
 
 import math
-import re
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -23,7 +21,7 @@ from threadpoolctl import threadpool_limits
 from gateway import __version__
 from gateway.diagnose.adequacy import Adequacy, assess
 from gateway.diagnose.compare import Comparison, HeldMetrics, compare
-from gateway.diagnose.data import Stack, build_stack
+from gateway.diagnose.data import Stack, build_stack, recording_label
 from gateway.diagnose.extend import extend_model
 from gateway.diagnose.hypotheses import FactorInfo, Hypothesis, catalogue
 from gateway.diagnose.locate import (
@@ -45,7 +43,7 @@ from gateway.diagnose.locate import (
     spectral_lines,
 )
 from gateway.diagnose.refit import Reidentified, path_corrections, reidentify
-from gateway.diagnose.search import Options, SearchResult, search
+from gateway.diagnose.search import Options, SearchResult, Trial, search
 from gateway.diagnose.select import make_blocks
 from gateway.estimate import Estimate, estimate
 from gateway.model.model import ThermalModel
@@ -167,12 +165,17 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
         for name, cols in tracks.items():
             results[name] = search(stack, hyps, block=block, artefacts=artefacts, options=sub, corrections=cols,
                                    progress=(lambda m, n=name: progress(f"{n}: {m}")) if progress else None)
-        frozen = extend_model(model, results["frozen"].terms)
+        def writable(t: Trial) -> bool:  # a signal of unknown meaning is named, never written unchecked
+            return not t.hypothesis.signal or t.hypothesis.signal in options.use_signals
+
+        frozen = extend_model(model, {a: [x for x in ts if writable(x.trial)]
+                                      for a, ts in results["frozen"].terms.items()})
         reid = None
         if refit:
-            reid = reidentify(stack, model, results["refit"].accepted, artefacts=artefacts, progress=progress)
-        comparison = compare(stack, model, block, results["frozen"], frozen, reid, artefacts=artefacts,
-                             options=options)
+            reid = reidentify(stack, model, [t for t in results["refit"].accepted if writable(t)],
+                              artefacts=artefacts, progress=progress)
+        comparison = compare(stack, model, block, [t for t in results["frozen"].accepted if writable(t)], frozen,
+                             reid, artefacts=artefacts, options=options)
     result = results["refit"] if comparison.chosen == "reidentified" else results["frozen"]
     on = [(t, f"{t.hypothesis.key} on {', '.join(t.axes)}") for t in result.accepted]
     record = {"cncgw_version": __version__, "recordings": list(stack.names), "written": comparison.chosen,
@@ -207,7 +210,10 @@ def missing_experiments(model: ThermalModel, stack: Stack) -> list[str]:
     listed = [str(n) for n in (model.info.get("experiments", []) or [])]
     if not listed:
         return [NONE_NAMED]
-    return [n for n in listed if n not in stack.names]
+    prints = list(model.info.get("experiment_fingerprints", []) or [])
+    have_names, have_prints = set(stack.names), set(stack.fingerprints)
+    return [n for k, n in enumerate(listed)
+            if n not in have_names and not (k < len(prints) and prints[k] in have_prints)]
 
 
 def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
@@ -220,7 +226,12 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
     how = " with every path refitted beside it" if d.comparison.chosen == "reidentified" else ""
     for t in physics:
         gain = ", ".join(f"{a} {100 * t.evidence[a].gain:.0f} %" for a in t.axes)
-        if d.comparison.chosen == "identified":
+        if t.hypothesis.signal and t.hypothesis.signal not in d.options.use_signals:
+            out.append(f"{t.hypothesis.title} explains part of the residual (held-out squared error down {gain}), "
+                       f"but it is not written into the model: what {t.hypothesis.signal} measures is unknown, and a "
+                       "signal that merely correlates in these recordings can make other days worse. Check it on "
+                       f"the machine, then diagnose again with --use-signal {t.hypothesis.signal}")
+        elif d.comparison.chosen == "identified":
             out.append(f"{t.hypothesis.title} passed the hypothesis search (held-out squared error down {gain}), but "
                        "no model with it predicts the recordings the identified model did not train on better: "
                        "not named as missing, not written")
@@ -283,8 +294,7 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
         if f.noise.quantum_um > 0:
             out.append(f"axis {a}: the displacement is quantised in steps of {f.noise.quantum_um:.3g} um "
                        f"(noise floor {f.noise.quantum_um / math.sqrt(12):.3g} um RMS)")
-    used = set(d.model.info.get("experiments", []) or [])
-    seen = [n for n in st.names if n in used]
+    seen = [recording_label(st.sources[r]) for r, s in enumerate(st.identified(d.model)) if s]
     if seen:
         out.append(f"{', '.join(seen)} identified the model: there its error is a fit residual, not a test; they "
                    "still inform the re-identification and the hypotheses' fits")
@@ -418,11 +428,3 @@ def starts_warm(model: ThermalModel, rec: Recording, *, gap_policy: str = "hold"
             return (f"axis {a} moves {moved:.3g} um in the first hour where the model, started at rest, predicts "
                     f"{predicted:.3g} um")
     return ""
-
-
-def recording_label(source: str) -> str:
-    """A short name for a recording: its file's stem, or "day 7" for the part of a file split by a column."""
-    m = re.search(r"\[([^=\]]+)=([^\]]+)\]$", source)
-    if m:
-        return f"{m.group(1)} {m.group(2)}"
-    return Path(source).stem if source else "recording"

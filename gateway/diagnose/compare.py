@@ -8,7 +8,9 @@
   data alone".
 
 Each is scored the same way: per held-out block, its gains (path gains included) are refitted on the
-other blocks at the time constants and settings chosen on all data, and the block is predicted. Nuisance
+other blocks at the time constants and settings chosen on all data, and predicted on the zero its recording's
+first block gives (that block is never scored: the state at a recording's start is not known, a gateway
+that has been running knows it from its records). Nuisance
 (a recording's own drift or initial state) is fitted while identifying and left out of the scoring, as
 ``cncgw estimate`` and ``cncgw run`` know nothing of it: the figures are what the written model does.
 A candidate passes when its held-out error is lower than the identified model's consistently over the
@@ -25,14 +27,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gateway.diagnose.data import Stack
+from gateway.diagnose.data import Stack, recording_label
 from gateway.diagnose.refit import Reidentified
-from gateway.diagnose.search import Options, SearchResult, setting_columns
-from gateway.diagnose.select import held_out, one_sided_p
+from gateway.diagnose.search import Options, Trial, setting_columns
+from gateway.diagnose.select import BURN_IN, held_out, one_sided_p
 from gateway.estimate import AxisFigures, error_figures
 from gateway.model.model import ThermalModel
 
 KEYS = ("identified", "terms", "reidentified")
+#: with this many recordings to judge on, each is left out whole
+MIN_RECORDINGS_OUT = 3
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -66,35 +70,47 @@ class Comparison:
 
     candidates: dict[str, Candidate]
     chosen: str
+    scheme: str = ""  # what was held out, in words
 
     @property
     def written(self) -> Candidate:
         return self.candidates[self.chosen]
 
 
-def compare(stack: Stack, model: ThermalModel, block: np.ndarray, result: SearchResult, extended: ThermalModel,
+def compare(stack: Stack, model: ThermalModel, block: np.ndarray, accepted: Sequence[Trial], extended: ThermalModel,
             reid: Reidentified | None, *, artefacts: Mapping[str, Sequence[np.ndarray]],
             options: Options) -> Comparison:
-    """Score the identified model, the terms on it and the re-identified model on the same held-out blocks."""
+    """Score the identified model, the terms on it and the re-identified model on the same held-out data.
+
+    ``accepted``: what the frozen search accepted and may be written (``extended`` is the model with them).
+    """
     offsets = stack.per_recording()
-    physics = [t for t in result.accepted if not t.hypothesis.artefact]
-    k = int(block.max()) + 1 if (block >= 0).any() else 0
+    physics = [t for t in accepted if not t.hypothesis.artefact]
+    folds, score, scheme = _scheme(stack, model, block, options)
+    k = int(score.max()) + 1 if (score >= 0).any() else 0
     cands: dict[str, Candidate] = {}
     specs: list[tuple[str, str, ThermalModel]] = [("identified", "the identified model as it is", model)]
     if physics:
         specs.append(("terms", "the accepted terms on the frozen identified model", extended))
     if reid is not None:
-        specs.append(("reidentified", "re-identified on all recordings" + (" with the accepted terms" if physics
+        with_terms = any(reid.terms.get(a) for a in stack.axes)
+        specs.append(("reidentified", "re-identified on all recordings" + (" with the accepted terms" if with_terms
                                                                            else " (more data alone, no new term)"),
                       reid.model))
     for key, title, m in specs:
         pred, sse, metrics = {}, np.zeros(k), {}
         for i, a in enumerate(stack.axes):
-            ok = (block != -1) & np.isfinite(stack.y[i])
+            ok = (folds != -1) & np.isfinite(stack.y[i])
             rows = np.flatnonzero(ok)
             if len(rows) < 8 or k == 0:
                 continue
-            cols = [c[rows] for c in offsets if np.any(c[rows])] + [c[rows] for c in artefacts.get(a, [])]
+            zeros = []  # each recording's offset column and its first block, where its zero is taken
+            cols = []
+            for c in offsets:
+                if np.any(c[rows]):
+                    zeros.append((len(cols), ((c != 0) & (block == BURN_IN))[rows]))
+                    cols.append(c[rows])
+            cols += [c[rows] for c in artefacts.get(a, [])]
             if key == "reidentified":
                 assert reid is not None
                 target = (stack.y[i] - reid.fixed[a])[rows]
@@ -108,30 +124,21 @@ def compare(stack: Stack, model: ThermalModel, block: np.ndarray, result: Search
                         e = t.evidence.get(a)
                         if e is not None and e.included and e.setting is not None:
                             cols += [c[rows] for c in setting_columns(stack, e.setting)[0]]
-            p, per_block = held_out(target, block[rows], cols)
-            sse[: len(per_block)] += per_block
+            p, _ = held_out(target, folds[rows], cols, zeros=zeros)
+            err = target - p
+            sc = score[rows]
+            for f in range(k):
+                sse[f] += float(np.sum(err[sc == f] ** 2))
             full = np.full(stack.n, np.nan)
-            full[rows] = p + shift
+            full[rows] = np.where(sc >= 0, p + shift, np.nan)
             pred[a] = full
         cands[key] = Candidate(key=key, title=title, model=m, prediction=pred, block_sse=sse, metrics=metrics)
-    # judged on what the identified model did not train on: its own experiments' blocks are a fit there, not
-    # a test, and would count against every other candidate; with nothing else given, on every block
-    seen = set(model.info.get("experiments", []) or [])
-    unseen = np.zeros(stack.n, dtype=bool)
-    for name, (lo, hi) in zip(stack.names, stack.bounds, strict=True):
-        unseen[lo:hi] = name not in seen
-    if not (unseen & (block >= 0)).any():
-        unseen[:] = True
-    judged = np.zeros(k, dtype=bool)
-    judged[np.unique(block[unseen & (block >= 0)])] = True
     # the peak is the measured displacement's, offset by what the identified model's scoring took as the zero
     base = cands["identified"]
-    for c in cands.values():
-        c.block_sse = c.block_sse[judged]
     for i, a in enumerate(stack.axes):
         if a not in base.prediction:
             continue
-        held = np.isfinite(base.prediction[a]) & unseen
+        held = np.isfinite(base.prediction[a])
         zero = base.prediction[a][held] - stack.base[i][held]
         measured = stack.y[i][held] - zero
         for c in cands.values():
@@ -141,7 +148,7 @@ def compare(stack: Stack, model: ThermalModel, block: np.ndarray, result: Search
         if c is base:
             c.passes, c.verdict = True, "the reference"
             continue
-        c.p = one_sided_p(base.block_sse - c.block_sse)
+        c.p = one_sided_p(_informative(base.block_sse, c.block_sse))
         c.gain = 1.0 - c.sse / base.sse if base.sse > 0 else 0.0
         if not c.p < options.alpha:
             c.verdict = f"not consistently better over the blocks (p = {c.p:.2g})"
@@ -156,10 +163,56 @@ def compare(stack: Stack, model: ThermalModel, block: np.ndarray, result: Search
         order = sorted(passing, key=lambda c: KEYS.index(c.key))
         best = order[0]
         for c in order[1:]:
-            if c.sse < best.sse and one_sided_p(best.block_sse - c.block_sse) < options.alpha:
+            if c.sse < best.sse and one_sided_p(_informative(best.block_sse, c.block_sse)) < options.alpha:
                 best = c
         chosen = best.key
     for c in cands.values():
         if c.key == chosen and c is not base:
             c.verdict += "; written"
-    return Comparison(candidates=cands, chosen=chosen)
+    return Comparison(candidates=cands, chosen=chosen, scheme=scheme)
+
+
+def _scheme(stack: Stack, model: ThermalModel, block: np.ndarray, options: Options) -> tuple[np.ndarray, np.ndarray,
+                                                                                               str]:
+    """(what each window's fit leaves out, the blocks the test scores, the scheme in words).
+
+    Judged on the recordings the identified model did not train on (its experiments are a fit for it, not a
+    test), or on every recording when there are no others. With at least three of them, each is left out
+    whole and predicted from its start from a fit on all the others (leave one recording out: a model must
+    predict a run it has not seen, not the rest of a day it has); the scores are cut into blocks of time
+    within them for the test. Else the blocks of time themselves are left out.
+    """
+    identified = stack.identified(model)
+    judged = [r for r, seen in enumerate(identified) if not seen] or list(range(len(stack.bounds)))
+    rec = stack.rec_index()
+    measured = np.isfinite(stack.y).any(axis=0)
+    if len(judged) >= MIN_RECORDINGS_OUT:
+        folds = np.where(measured, BURN_IN, -1)
+        score = np.full(stack.n, -1)
+        per = max(2, round(options.blocks / len(judged)))
+        nxt = 0
+        for r in judged:
+            lo, hi = stack.bounds[r]
+            idx = np.flatnonzero(measured[lo:hi]) + lo
+            folds[idx] = r
+            idx = idx[block[idx] != BURN_IN]  # its first block gives its zero and is not scored
+            for part in np.array_split(idx, per):
+                if part.size:
+                    score[part] = nxt
+                    nxt += 1
+        names = ", ".join(recording_label(stack.sources[r]) for r in judged[:6]) + (", ..." if len(judged) > 6 else "")
+        return folds, score, f"each of {len(judged)} recordings left out whole ({names})"
+    raw = np.where(np.isin(rec, judged) & (block >= 0), block, -1)
+    score = np.full(stack.n, -1)
+    score[raw >= 0] = np.searchsorted(np.unique(raw[raw >= 0]), raw[raw >= 0])
+    return block, score, f"held-out blocks of time in {len(judged)} recording(s)"
+
+
+#: blocks whose squared errors differ by less than this share are ties: no evidence either way
+TIE_SHARE = 0.01
+
+
+def _informative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per block, how much better ``b`` is than ``a``; near-ties (a block where nothing happens) count as 0."""
+    d = a - b
+    return np.where(np.abs(d) <= TIE_SHARE * np.maximum(a, b), 0.0, d)

@@ -11,12 +11,15 @@ exactly what diagnosis fitted.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from gateway.errors import GatewayError
+from gateway.estimate import LEAD_IN_MAX
 from gateway.model.inputs import Column, DerivedInput, evaluate_inputs, hold_missing, initial_values
 from gateway.model.model import PathTF, ThermalModel
 from gateway.model.terms import FirstOrder, Term
@@ -74,11 +77,19 @@ class Stack:
     base: np.ndarray  # (A, N) the model's prediction
     contributions: np.ndarray  # (A, inputs, N) the model's prediction per input
     notes: list[str] = field(default_factory=list)
+    fingerprints: tuple[str, ...] = ()  # per recording (:meth:`Recording.fingerprint` of the model's factors)
     _cache: dict[object, object] = field(default_factory=dict, repr=False)
 
     @property
     def n(self) -> int:
         return len(self.time_s)
+
+    def identified(self, model: ThermalModel) -> list[bool]:
+        """Per recording, whether it is one of the experiments ``model`` was identified on (by name or content)."""
+        names = set(model.info.get("experiments", []) or [])
+        prints = set(model.info.get("experiment_fingerprints", []) or [])
+        return [name in names or (bool(fp) and fp in prints)
+                for name, fp in zip(self.names, self.fingerprints or [""] * len(self.names), strict=True)]
 
     def rec_index(self) -> np.ndarray:
         out = np.empty(self.n, dtype=int)
@@ -143,6 +154,23 @@ class Stack:
             self._cache[key] = total
         return self._cache[key]  # type: ignore[return-value]
 
+    def lead_in(self, r: int) -> np.ndarray:
+        """The windows of recording ``r`` its measured zero is taken from, as ``cncgw estimate`` aligns it.
+
+        Its idle lead-in: the windows before any factor moves (at most ``LEAD_IN_MAX``, at least the first).
+        """
+        lo, hi = self.bounds[r]
+        moving = np.zeros(hi - lo, dtype=bool)
+        for f in self.factors:
+            u = self.du[f][lo:hi]
+            size = float(np.max(np.abs(u))) if u.size else 0.0
+            if size > 0:
+                moving |= np.abs(u) > 0.01 * size
+        first = np.flatnonzero(moving)
+        out = np.zeros(hi - lo, dtype=bool)
+        out[: max(1, min(int(first[0]) if first.size else hi - lo, LEAD_IN_MAX))] = True
+        return out
+
     def per_recording(self) -> list[np.ndarray]:
         """Indicator columns, one per recording (free offsets: sensors are zeroed anywhere)."""
         cols = []
@@ -191,7 +219,7 @@ def build_stack(model: ThermalModel, recordings: Sequence[Recording], *, gap_pol
                              ", ".join(f"{r.name} {r.period_s:g} s" for r in recordings))
     dt = recordings[0].period_s
     dm = model.discretize(dt)
-    names, srcs, bounds, notes = [], [], [], []
+    names, srcs, bounds, notes, prints = [], [], [], [], []
     times, present, ys, bases, contribs = [], [], [], [], []
     du: dict[str, list[np.ndarray]] = {k: [] for k in model.input_names}
     raw: dict[str, list[np.ndarray]] = {f: [] for f in model.factors}
@@ -204,6 +232,7 @@ def build_stack(model: ThermalModel, recordings: Sequence[Recording], *, gap_pol
         notes += [f"{p.name}: {n}" for n in p.notes]
         names.append(p.name)
         srcs.append(rec.source)
+        prints.append(rec.fingerprint(model.factors))
         bounds.append((start, start + p.n))
         start += p.n
         times.append(p.time_s)
@@ -228,7 +257,7 @@ def build_stack(model: ThermalModel, recordings: Sequence[Recording], *, gap_pol
                  raw={k: np.concatenate(v) for k, v in raw.items()},
                  extras={k: np.concatenate(v) for k, v in extras.items()}, y=y,
                  base=np.concatenate(bases, axis=1), contributions=np.concatenate(contribs, axis=2),
-                 notes=notes)
+                 notes=notes, fingerprints=tuple(prints))
 
 
 def log_grid(lo: float, hi: float, per_decade: float = 5.0) -> list[float]:
@@ -237,3 +266,11 @@ def log_grid(lo: float, hi: float, per_decade: float = 5.0) -> list[float]:
         return [float(lo)]
     n = max(2, math.ceil(math.log10(hi / lo) * per_decade) + 1)
     return [float(v) for v in np.geomspace(lo, hi, n)]
+
+
+def recording_label(source: str) -> str:
+    """A short name for a recording: its file's stem, or "day 7" for the part of a file split by a column."""
+    m = re.search(r"\[([^=\]]+)=([^\]]+)\]$", source)
+    if m:
+        return f"{m.group(1)} {m.group(2)}"
+    return Path(source).stem if source else "recording"

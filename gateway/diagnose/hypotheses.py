@@ -97,6 +97,8 @@ class Hypothesis:
     simpler: tuple[str, ...] = ()
     #: machine-wide parameters (a transport delay, a bearing's time constant): one value for every axis
     shared: tuple[str, ...] = ()
+    #: the recorded column a hypothesis of unknown meaning rests on ("" for the rest)
+    signal: str = ""
     #: a structural change of an identified path (an extra mode, a dead time) rather than a named mechanism:
     #: it can mimic most slow heat sources, so it counts one parameter more when hypotheses are ranked
     generic: bool = False
@@ -239,7 +241,7 @@ def _recorded_signal(ctx: _Ctx) -> list[Hypothesis]:
         explanation=(f"Column {col} is recorded but not a model input; if the displacement follows it "
                      "through a lag, it carries heat (or is a temperature of a part) the factors miss. "
                      "Its meaning must be checked on the machine before it is used in production."),
-        settings={a: _column_settings(ctx, col) for a in ctx.axes})
+        settings={a: _column_settings(ctx, col) for a in ctx.axes}, signal=col)
         for col in _usable_columns(ctx) if not ROOM_NAMES.search(col)]
 
 

@@ -154,27 +154,29 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
         sel = select_axis(es, i, active=active, seeds=[seeds[a]], input_bounds=[bounds] * len(factors))
         selections[a] = sel
         fit = sel.chosen
-        axis_paths = fit.paths(factors)
+        # the time constants are the identifier's; the gains of what is written are fitted again without the
+        # nuisance (a recording's own drift or initial state), the way the scoring and `cncgw estimate` see
+        # the model: each recording from rest, a free zero per recording
+        fitted = fit.paths(factors)
+        units = [(j, stack.response(stack.du[p.factor], (term.with_gain(1.0),), p.delay_s))
+                 for j, p in enumerate(fitted) for term in p.terms]
+        cols = [u for _, u in units] + phys
+        g = final_gains(stack.y[i] - frozen[i], cols, stack.per_recording() + list((artefacts or {}).get(a, [])))
+        axis_paths, k = [], 0
+        for p in fitted:
+            n = len(p.terms)
+            axis_paths.append(replace(p, terms=tuple(t.with_gain(float(x)) for t, x in zip(p.terms, g[k: k + n],
+                                                                                          strict=True))))
+            k += n
         paths += axis_paths
-        gains = fit.extra_gains[: len(phys)]
         terms[a] = []
-        k = 0
         for t, setting in kept:
-            g = gains[k: k + len(setting.components)]
+            gs = g[k: k + len(setting.components)]
             k += len(setting.components)
-            contrib = sum((gi * stack.column(c, setting.chain) for gi, c in zip(g, setting.components, strict=True)),
+            contrib = sum((gi * stack.column(c, setting.chain) for gi, c in zip(gs, setting.components, strict=True)),
                           np.zeros(stack.n))
-            terms[a].append(Term(trial=t, axis=a, setting=setting, gains=np.asarray(g), contribution=contrib))
-        cols = []
-        pred = frozen[i].copy()
-        for p in axis_paths:
-            for term in p.terms:
-                unit = stack.response(stack.du[p.factor], (term.with_gain(1.0),), p.delay_s)
-                cols.append(unit)
-                pred += term.gain * unit
-        cols += phys
-        pred += sum((term.contribution for term in terms[a]), np.zeros(stack.n))
-        prediction[i] = pred
+            terms[a].append(Term(trial=t, axis=a, setting=setting, gains=np.asarray(gs), contribution=contrib))
+        prediction[i] = frozen[i] + sum((x * c for x, c in zip(g, cols, strict=True)), np.zeros(stack.n))
         columns[a] = cols
         fixed[a] = frozen[i]
     base = model.with_paths(paths, info={**model.info, "reidentified": {
@@ -183,3 +185,15 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
     extended = extend_model(base, terms)
     return Reidentified(model=extended, prediction=prediction, columns=columns, fixed=fixed, selections=selections,
                         terms=terms, wall_s=time.perf_counter() - t0)
+
+
+def final_gains(target: np.ndarray, columns: Sequence[np.ndarray], free: Sequence[np.ndarray]) -> np.ndarray:
+    """Least-squares gains of ``columns`` for ``target`` over its measured windows, ``free`` columns beside."""
+    ok = np.isfinite(target)
+    used = [c for c in free if np.any(c[ok])]
+    X = np.column_stack([*(c[ok] for c in columns), *(c[ok] for c in used)])
+    scale = np.linalg.norm(X, axis=0)
+    scale[scale == 0] = 1.0
+    Xs = X / scale
+    beta = np.linalg.lstsq(Xs, target[ok], rcond=None)[0] / scale
+    return beta[: len(columns)]

@@ -178,12 +178,14 @@ def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = 
     if d.notes:
         L += ["Notes on the data:", ""] + [f"- {n}" for n in d.notes] + [""]
 
-    L += ["## Models compared on held-out blocks", "",
-          "Each block of time is predicted from a fit on the other blocks (the first block of each recording only "
-          "trains): every candidate's gains (a free offset per recording, and the path gains of a re-identified "
-          "model) are refitted without the block, at the time constants chosen on all data. A recording's own "
-          "drift or initial state is fitted while identifying and left out here, as `cncgw estimate` and `cncgw "
-          "run` know nothing of it. The best candidate that passes is written.", "",
+    L += ["## Models compared on held-out data", "",
+          f"Held out: {d.comparison.scheme}. What is held out is predicted from a fit on the rest: every "
+          "candidate's gains (the path gains of a re-identified model too) are refitted without it, at the time "
+          "constants chosen on all data, and each recording is predicted from its start at rest on the zero "
+          "`cncgw estimate` takes (its idle lead-in). A recording's own drift or initial state is fitted while "
+          "identifying and left out here, as `cncgw estimate` and `cncgw run` know nothing of it. A candidate "
+          "passes when it is better consistently over the blocks (signed-rank test) and relevantly; the best that "
+          "passes is written.", "",
           "| model | verdict | " + " | ".join(f"{a}: RMS / max abs / % of peak" for a in d.model.axes) + " |",
           "|---|---|" + "---|" * len(d.model.axes)]
     for c in d.comparison.candidates.values():

@@ -45,6 +45,9 @@ class Options:
     #: a term on top of the frozen model: when the missing physics also shaped the identification runs,
     #: the paths are wrong and no added term can repair them
     reidentify: bool = True
+    #: recorded columns whose meaning the user has checked: a hypothesis on any other recorded signal (not a
+    #: room thermometer) can be named, but is never written into the model (it could be anything)
+    use_signals: tuple[str, ...] = ()
 
 
 @dataclass(kw_only=True)

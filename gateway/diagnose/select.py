@@ -345,15 +345,29 @@ def jackknife_sd(values: np.ndarray) -> np.ndarray:
     return np.sqrt((k - 1) / k * np.sum((v - v.mean(axis=0)) ** 2, axis=0))
 
 
-def held_out(target: np.ndarray, block: np.ndarray, columns: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def held_out(target: np.ndarray, block: np.ndarray, columns: Sequence[np.ndarray], *,
+             zeros: Sequence[tuple[int, np.ndarray]] = ()) -> tuple[np.ndarray, np.ndarray]:
     """(predictions of ``target`` on each held-out block from the other blocks, held-out SSE per block).
 
     ``columns`` are the regressors whose gains every fold refits; burn-in rows always train and get NaN.
+    ``zeros``: per recording, (index in ``columns`` of its offset column, the windows its zero is taken from:
+    its first block). Each fold fits that offset like any gain, but predicts the recording on the zero its
+    first block gives with the fold's gains, as a gateway that has run for a while is zeroed: an offset found
+    later in the recording (or none, for a recording held out whole) does not rescue a model.
     """
-    fold = Fold(r=target, block=block, fixed=np.column_stack(list(columns)))
+    cols = list(columns)
+    fold = Fold(r=target, block=block, fixed=np.column_stack(cols))
     fs = fold.solver
     pred = np.full(len(target), np.nan)
     for f in range(fold.k):
+        beta = fs.b_tr[f]
+        full = fold.F @ beta
+        for j, first in zeros:
+            member = cols[j] != 0
+            shape = full - fold.F[:, j] * beta[j]  # everything but this recording's own offset
+            if first.any():
+                full[member] = shape[member] + float(np.mean(target[first] - shape[first]))
         rows = block == f
-        pred[rows] = fold.F[rows] @ fs.b_tr[f]
-    return pred, fs.without
+        pred[rows] = full[rows]
+    sse = np.array([float(np.sum((target[block == f] - pred[block == f]) ** 2)) for f in range(fold.k)])
+    return pred, sse

@@ -112,7 +112,9 @@ def _identify(
     selections: list[AxisSelection] = []
     paths = []
     info: dict[str, object] = {
-        "method": method, "experiments": list(es.names), "window_s": es.dt_s, "longest_experiment_s": es.longest_s,
+        "method": method, "experiments": list(es.names),
+        "experiment_fingerprints": [r.fingerprint(factors) for r in recordings],
+        "window_s": es.dt_s, "longest_experiment_s": es.longest_s,
         "identified_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"), "cncgw_version": __version__,
     }
     if method == "joint":

@@ -479,6 +479,8 @@ def _parse_info(t: Table, factors: Sequence[str]) -> dict[str, Any]:
         t.str("method")
     if "experiments" in t:
         t.str_list("experiments", unique=False)
+    if "experiment_fingerprints" in t:
+        t.str_list("experiment_fingerprints", unique=False)
     if "longest_experiment_s" in t:
         t.float("longest_experiment_s", min=0.0, min_exclusive=True)
     ranges = t.table("deviation_range", expected="a table of factor -> [lowest, highest] deviation")
