@@ -22,6 +22,7 @@ from types import MappingProxyType
 from typing import Any
 
 from drivers.base import FASTEST_PERIOD_S
+from gateway.adaptive.settings import Probes, parse_probes
 from gateway.errors import ProfileError
 from gateway.live.settings import (
     Compensation,
@@ -138,6 +139,7 @@ class Profile:
     opcua: OpcUa = field(default_factory=OpcUa)
     mqtt: Mqtt = field(default_factory=Mqtt)
     records: Records = field(default_factory=Records)
+    probes: Probes = field(default_factory=Probes)
 
     @property
     def factor_names(self) -> tuple[str, ...]:
@@ -238,6 +240,7 @@ def load_profile(path: str | Path) -> Profile:
     opcua = parse_opcua(root, doc.path.parent)
     mqtt = parse_mqtt(root, doc.path.parent)
     records = parse_records(root)
+    probes = parse_probes(root)
 
     root.done()
     doc.raise_problems()
@@ -245,7 +248,7 @@ def load_profile(path: str | Path) -> Profile:
         path=doc.path, name=name, description=description, axes=axes, sampling=sampling,
         factors=tuple(factors), recording=recording, model_path=model_path,
         devices=tuple(devices), channels=tuple(channels), compensation=compensation, live=live, opcua=opcua,
-        mqtt=mqtt, records=records,
+        mqtt=mqtt, records=records, probes=probes,
     )
 
 

@@ -316,13 +316,15 @@ class AdaptiveEstimator:
         if probe.time_s > self.time_s + 1e-6:
             return [self._refuse(probe, f"taken at {probe.time_s:.0f} s, after the last estimated window "
                                         f"({self.time_s:.0f} s): apply it after that window's step")]
-        if probe.time_s < lo - 1e-6:
+        if probe.time_s < lo - self.window_s - 1e-6:
             self.seq.note(probe)
-            return [self._refuse(probe, f"taken at {probe.time_s:.0f} s, more than a window before the last "
+            return [self._refuse(probe, f"taken at {probe.time_s:.0f} s, more than two windows before the last "
                                         f"estimate ({self.time_s:.0f} s): too old to compare")]
         self.seq.note(probe)
-        # the model at the probe's instant, between the last two window ends (the disturbance barely moves)
+        # the model at the probe's instant, between the last two window ends (the disturbance barely moves); a
+        # probe handed over a window late is compared with the earlier end
         f = 1.0 if self.prev_time_s is None else (probe.time_s - lo) / max(self.time_s - lo, 1e-9)
+        f = min(max(f, 0.0), 1.0)
         c = self.c_prev + f * (self.c - self.c_prev)
         mean, var, w = self._members(c)
         R = probe.sd_um ** 2

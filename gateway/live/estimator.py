@@ -33,7 +33,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
 
@@ -84,6 +84,8 @@ class EstimateUpdate:
     filled: int = 0  # windows filled (this one included when it was bad)
     first_live: bool = False  # the first window after start: the gateway joined it part-way
     notes: tuple[str, ...] = ()
+    #: standard uncertainty per axis (um) when probes update the model (gateway.adaptive); empty otherwise
+    sd_um: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
 
 
 def bad_reason(record: WindowRecord, factors: Iterable[str], channels: Mapping[str, str] | None = None) -> str:
@@ -290,6 +292,7 @@ class Estimator:
         du = np.concatenate(cols, axis=1)
         self.estimator = LiveEstimator.from_history(self.dm, du)
         self.rebuilt_windows = du.shape[1]
+        self._rebuilt(last.index - du.shape[1] + 1 if last is not None else 0, du)
         assert last is not None
         y = self.estimator.output()
         self.last = EstimateUpdate(index=last.index, end_s=last.end_s, estimate_um=self._axes_map(y),
@@ -297,6 +300,12 @@ class Estimator:
                                    factors=MappingProxyType(dict(last.factors)), usable=False,
                                    reason="rebuilt from the records: no live window yet")
         return du.shape[1]
+
+    def _stepped(self, index: int) -> None:
+        """Window ``index`` was stepped live (a filled one too); a subclass layers on it (gateway.adaptive)."""
+
+    def _rebuilt(self, first_index: int, du: np.ndarray) -> None:
+        """The rebuild replayed windows ``first_index``.. with inputs ``du``; a subclass layers on it."""
 
     def _axes_map(self, y: np.ndarray) -> Mapping[str, float]:
         return MappingProxyType({a: float(v) for a, v in zip(self.model.axes, y, strict=True)})
@@ -311,6 +320,7 @@ class Estimator:
         y = None
         for k in range(cols.shape[1]):
             y = self.estimator.step(cols[:, k])
+            self._stepped(record.index - cols.shape[1] + 1 + k)
         assert y is not None
         if filled and not reason:
             gap = self.history.gaps[-1]

@@ -89,6 +89,8 @@ class LiveGateway:
         self.opcua: Any = None
         self.acquisition: Any = None
         self.outputs: list[Any] = []  # outputs beside OPC UA (gateway.outputs): MQTT
+        self.probes: Any = None  # the CNC's probe block reader ([probes], gateway.adaptive.live)
+        self.probe_store: Any = None
         self.started_wall: float | None = None
         self.started_s: float | None = None
         self.windows_live = 0
@@ -150,9 +152,20 @@ class LiveGateway:
         else:
             self.writer.service()
 
-        self.estimator = Estimator(self.model, window_s=p.sampling.window_s, live=p.live,
-                                   channels={f.name: f.channel for f in p.factors},
-                                   channel_names=[c.name for c in p.channels])
+        estimator_args: dict[str, Any] = {"window_s": p.sampling.window_s, "live": p.live,
+                                          "channels": {f.name: f.channel for f in p.factors},
+                                          "channel_names": [c.name for c in p.channels]}
+        if p.probes.enabled:  # the model updated by the CNC's probes (gateway.adaptive)
+            from gateway.adaptive.live import ProbedEstimator, ProbeReader, ProbeStore
+
+            self.probe_store = ProbeStore(self.data_dir / STORE_NAME)
+            self.probes = ProbeReader(p.probes, clock=self.clock, audit=self.audit, link_factory=lambda: CncLink(
+                p.compensation, clock=self.clock, name="cnc-probes"))
+            self.estimator = ProbedEstimator(self.model, probes=p.probes, store=self.probe_store,
+                                             source=self.probes.take, audit=self.audit, clock=self.clock,
+                                             **estimator_args)
+        else:
+            self.estimator = Estimator(self.model, **estimator_args)
         if self.store.last_index is not None:
             since = self.store.last_index + 1 - history_windows(self.model, p.sampling.window_s, p.live)
             t0 = time.perf_counter()
@@ -179,6 +192,8 @@ class LiveGateway:
                                            window_s=p.sampling.window_s, store=self.store, profile=p,
                                            factor_units={f.name: f.unit for f in p.factors}).start())
 
+        if self.probes is not None and not self.stepped:
+            self.probes.start()
         self.acquisition = Acquisition(p, clock=self.clock, sinks=[self._on_window], spin_s=self._spin_s,
                                        rt_priority=self._rt_priority, driver_factories=self._driver_factories)
         if not self.stepped:
@@ -203,6 +218,8 @@ class LiveGateway:
             self._retention = None
         if self.acquisition is not None:
             self.acquisition.stop()
+        if self.probes is not None:
+            self.probes.stop()
         if self.writer is not None:
             self.writer.stop()
         if self.opcua is not None:
@@ -212,6 +229,8 @@ class LiveGateway:
         if self.audit is not None:
             self.audit.event(self.clock.now(), "stop", "gateway", "stopped")
             self.audit.close()
+        if self.probe_store is not None:
+            self.probe_store.close()
         if self.store is not None:
             self.store.close()
 
@@ -229,6 +248,8 @@ class LiveGateway:
         t = self.clock.now()
         while t < until_s - 1e-9:
             t = min(until_s, t + step)
+            if self.probes is not None:  # the probe block is read between windows, as the thread would
+                self.probes.service(t)
             self.acquisition.run_stepped(t)
             self.writer.service()
         self.prune_records()  # the retention thread's work, in step
@@ -356,7 +377,7 @@ class LiveGateway:
             "factors": {} if rec is None else dict(rec.factors),
             "estimate": None if est is None else {"window": est.index, "end_s": est.end_s,
                                                    "estimate_um": dict(est.estimate_um), "usable": est.usable,
-                                                   "reason": est.reason},
+                                                   "reason": est.reason, "sd_um": dict(est.sd_um)},
             "compensation": self.writer.status() if self.writer is not None else None,
             "gaps": {"filled_windows": hist.filled_total if hist else 0, "policy": self.profile.live.gap_policy,
                      "last": hist.gaps[-1].describe(self.profile.sampling.window_s) if hist and hist.gaps else ""},
