@@ -15,7 +15,8 @@ no more than an anonymous session (refused too when anonymous sessions are off).
 Address space (namespace ``urn:cncgw``, string node ids, so a client can read ``ns=2;s=Estimate.z_um``):
 
 - ``Machine.Name``; ``Factors.<factor>`` (last window's factor, its unit in the description);
-- ``Estimate.<axis>_um``, ``Estimate.Window``, ``Estimate.Usable``, ``Estimate.Reason``;
+- ``Estimate.<axis>_um``, ``Estimate.Window``, ``Estimate.Usable``, ``Estimate.Reason``; with ``[probes]``
+  also ``Estimate.<axis>_band95_um`` (the 95 % half-band of the estimate updated by probes);
 - ``Compensation.Mode`` (``write``/``dry-run``), ``Compensation.Commanded.<axis>_um``,
   ``Compensation.Applied.<axis>_um`` (last read-back), ``Compensation.LastWriteTimeS``,
   ``Compensation.Verified``, ``Compensation.Writes``, ``Compensation.HoldRequest``;
@@ -186,6 +187,10 @@ class OpcUaServer:
         est = await folder(root, "Estimate")
         for a in self.model.axes:
             await var(est, f"Estimate.{a}_um", 0.0, D, f"estimated thermal displacement along {a} [um]")
+        if self.profile.probes.enabled:  # the model updated by probes: every estimate has its band
+            for a in self.model.axes:
+                await var(est, f"Estimate.{a}_band95_um", math.nan, D,
+                          f"95 % half-band of the estimate along {a}: the true displacement is within +- this [um]")
         await var(est, "Estimate.Window", -1, I64)
         await var(est, "Estimate.Usable", False, B)
         await var(est, "Estimate.Reason", "", S)
@@ -252,6 +257,9 @@ class OpcUaServer:
         if est:
             for a, v in est["estimate_um"].items():
                 values[f"Estimate.{a}_um"] = float(v)
+            for a, v in est.get("sd_um", {}).items():
+                if f"Estimate.{a}_band95_um" in self._nodes:
+                    values[f"Estimate.{a}_band95_um"] = 1.959963984540054 * float(v)
             values["Estimate.Window"] = int(est["window"])
             values["Estimate.Usable"] = bool(est["usable"])
             values["Estimate.Reason"] = str(est["reason"])

@@ -7,6 +7,7 @@ A ManualClock steps the samplers, the writer and the probe reader (see tests/tes
 
 from __future__ import annotations
 
+import asyncio
 import tomllib
 
 import pytest
@@ -39,14 +40,14 @@ def scenario(tmp_path):
 
 
 class ProbeRig:
-    def __init__(self, tmp_path, *, probes: str, name="p"):
+    def __init__(self, tmp_path, *, probes: str, name="p", opcua_port=None):
         self.clock = ManualClock(0.0)
         self.machine = LiveMachine(scenario(tmp_path), clock=self.clock)
         # a 15 s watchdog and a beat every 4 s: fewer steps of the clock, a fast test
         cnc = CompensationConfig(probes=ProbeCycles(every_s=PROBE_EVERY_S, sd_um=0.3, seed=2), heartbeat_timeout_s=15.0)
         self.devices = serve(self.machine, self.clock, DeviceSetConfig(adc_rtu=None, can=None, dcon=None, cnc=cnc))
         try:
-            path = live_profile(self.devices, tmp_path / f"{name}.toml", period_s=PERIOD_S, opcua_port=None,
+            path = live_profile(self.devices, tmp_path / f"{name}.toml", period_s=PERIOD_S, opcua_port=opcua_port,
                                 max_step_um=5.0, heartbeat_period_s=4.0, watchdog_s=15.0)
             path.write_text(path.read_text() + f"\n[probes]\n{probes}\n")
             self.profile = load_profile(path)
@@ -142,15 +143,31 @@ def test_bad_probes_are_refused_live_with_their_reason(tmp_path):
     assert sum("wrong sign" in m for m in block) == 1
 
 
+async def read_band(endpoint):
+    from asyncua import Client
+
+    async with Client(endpoint, timeout=10) as client:
+        ns = await client.get_namespace_index("urn:cncgw")
+        return {a: await client.get_node(f"ns={ns};s=Estimate.{a}_band95_um").read_value() for a in "xyz"}
+
+
 def test_compensation_holds_while_the_band_is_wider_than_the_limit(tmp_path):
     # no probe before 30 min: the band grows from the identification's; after the probes it is narrow again
-    rig = ProbeRig(tmp_path, probes="enabled = true\npoll_s = 5.0\nband_limit_um = 1.0")
+    rig = ProbeRig(tmp_path, probes="enabled = true\npoll_s = 5.0\nband_limit_um = 1.0", opcua_port=0)
     data = tmp_path / "data"
     try:
         with rig.gateway(data) as gw:
             gw.run_stepped(2.5 * 3600)
+            for _ in range(200):  # the OPC UA publisher catches up with the windows
+                if gw.opcua.published >= gw.windows_live:
+                    break
+                asyncio.run(asyncio.sleep(0.02))
+            served = asyncio.run(read_band(gw.opcua.endpoint))
     finally:
         rig.close()
+    last = rig.updates[max(rig.updates)]
+    for a in "xyz":  # OPC UA serves the band of the last estimate
+        assert served[a] == pytest.approx(1.959963984540054 * last.sd_um[a], rel=1e-9)
     evs, writes = events(data)
     held = [m for _, k, n, m in evs if n == "inputs" and "wider than probes.band_limit_um = 1 um" in m]
     assert held, [m for _, _, n, m in evs if n == "inputs"]
@@ -161,3 +178,18 @@ def test_compensation_holds_while_the_band_is_wider_than_the_limit(tmp_path):
     written = {w.window for w in writes}
     assert not written & set(wide)  # nothing written on a window whose band was too wide
     assert written & set(narrow)
+
+
+def test_the_mqtt_estimate_carries_the_band():
+    from gateway.outputs import WindowSnapshot
+    from gateway.outputs.payloads import window_payloads
+
+    snap = WindowSnapshot(machine="m", window=7, end_s=480.0, status="good", coverage=1.0, samples_taken=10,
+                          samples_expected=10, missed_ticks=0, estimate_um={"z": -12.5}, usable=True,
+                          band95_um={"z": 0.8})
+    estimate = dict(window_payloads(snap))["estimate"]
+    assert estimate["band95"]["z"]["value"] == 0.8
+    assert estimate["values"]["z"]["value"] == -12.5
+    plain = dict(window_payloads(WindowSnapshot(machine="m", window=7, end_s=480.0, status="good", coverage=1.0,
+                                                samples_taken=10, samples_expected=10, missed_ticks=0)))["estimate"]
+    assert "band95" not in plain  # without probes the payload is as before

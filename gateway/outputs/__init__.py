@@ -86,6 +86,8 @@ class WindowSnapshot:
     writes: int = 0
     alarms: tuple[str, ...] = ()
     window_reason: str = ""  # why the window is not good ("" when it is)
+    #: the estimate's 95 % half-band per axis (um) when probes update the model ([probes]); empty otherwise
+    band95_um: MappingProxyType[str, float] = field(default_factory=_frozen)
     source: str = "live"  # "live", or "records" for a window rebuilt from the records store after a restart
 
 
@@ -116,7 +118,8 @@ def snapshot(gateway: Any, record: Any, update: Any) -> WindowSnapshot:
         filled_windows=update.filled, mode=comp.get("mode", "dry-run"),
         commanded_um=_frozen(comp.get("commanded_um", {})), applied_um=_frozen(last.get("applied_um", {})),
         verified=bool(last.get("verified", False)), writes=int(comp.get("writes", 0)), alarms=alarms,
-        window_reason=getattr(record, "reason", ""))
+        window_reason=getattr(record, "reason", ""),
+        band95_um=_frozen({a: 1.959963984540054 * v for a, v in getattr(update, "sd_um", {}).items()}))
 
 
 def record_snapshot(profile: Any, record: Any) -> WindowSnapshot:

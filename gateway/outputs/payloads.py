@@ -2,7 +2,8 @@
 
 Four messages a window, one per topic ``<prefix>/<machine>/<kind>``:
 
-- ``estimate``: the estimated thermal displacement per axis (um), whether it may drive compensation;
+- ``estimate``: the estimated thermal displacement per axis (um), whether it may drive compensation; with
+  ``[probes]`` also ``band95``: per axis the 95 % half-band (um) of the estimate updated by probes;
 - ``offsets``: the offsets commanded to the CNC and read back (um), the writer's mode, verified or not;
 - ``factors``: the window's heat-generating factors, each with its unit;
 - ``health``: the window's status and why it is not good, coverage, samples, missed ticks, devices in error,
@@ -36,8 +37,11 @@ def window_payloads(s: WindowSnapshot) -> list[tuple[str, dict[str, Any]]]:
     estimate = {**head, "unit": "um", "usable": s.usable and good, "reason": s.reason,
                 "filled_windows": s.filled_windows,
                 "values": _values(s.estimate_um, trusted=s.usable and good)}
+    if s.band95_um:  # the model updated by probes: the true displacement is within +- this, 95 % of the time
+        estimate["band95"] = _values(s.band95_um, trusted=s.usable and good)
     if s.source == "records":
         estimate["values"] = {}
+        estimate.pop("band95", None)
     # the offsets are what the CNC was told and showed: trusted once a write was read back equal
     offsets = {**head, "unit": "um", "mode": s.mode, "verified": s.verified, "writes": s.writes,
                "commanded": _values(s.commanded_um, trusted=True),
