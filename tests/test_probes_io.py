@@ -124,3 +124,69 @@ def test_bad_probe_csv_names_file_line_and_column(tmp_path, text, message):
         read_probes(f)
     assert message in str(err.value)
     assert str(f) in str(err.value)
+
+
+@pytest.fixture(scope="module")
+def room_run(tmp_path_factory):
+    """The paper's spindle-and-feeds run in a room swinging 6 K in 8 h, recorded; probes of its truth every 30 min."""
+    import tomllib
+
+    import numpy as np
+    import tomli_w
+
+    from simulators.machine.run import simulate, write_run
+    from simulators.machine.scenario import parse_scenario_text
+
+    out = tmp_path_factory.mktemp("room")
+    doc = tomllib.loads((ROOT / "simulators" / "scenarios" / "spindle-feeds.toml").read_text())
+    doc["effects"] = {"room_cycle": {"amplitude_k": 3.0, "period_h": 8.0, "peak_at_h": 4.0}}
+    result = simulate(parse_scenario_text(tomli_w.dumps(doc), source="room"))
+    rec, _ = write_run(result, out)
+    rng = np.random.default_rng(3)
+    rows = ["time_s,seq,x_um,y_um,z_um,sd_um"]
+    for q, k in enumerate(range(29, len(result.time_s), 30)):
+        vals = result.true_um[k] + 0.3 * rng.standard_normal(3)
+        rows.append(f"{result.time_s[k]:g},{q + 1},{vals[0]:.3f},{vals[1]:.3f},{vals[2]:.3f},0.3")
+    probes = out / "probes.csv"
+    probes.write_text("\n".join(rows) + "\n")
+    return rec, probes
+
+
+def cli(args, capsys):
+    from gateway.cli import main
+
+    code = main([str(a) for a in args])
+    return code, capsys.readouterr()
+
+
+def test_estimate_with_probes_from_a_csv(room_run, capsys, tmp_path):
+    import json
+
+    rec, probes = room_run
+    code, out = cli(["estimate", "--profile", "sim-vmc", rec, "--json", "--align", "none"], capsys)
+    assert code == 0
+    alone = json.loads(out.out)[0]["axes"]["z"]["rms_um"]
+    code, out = cli(["estimate", "--profile", "sim-vmc", rec, "--probes", probes, "--json", "--align", "none", "-o",
+                     tmp_path / "p.csv"],
+                    capsys)
+    assert code == 0, out.err
+    doc = json.loads(out.out)[0]
+    assert doc["probes_applied"] == 16 * 3  # every 30 min of the 8 h run, three axes each
+    assert doc["refused"] == []
+    assert alone > 1.0  # the room the model does not know
+    assert doc["axes"]["z"]["rms_um"] < 0.3 * alone
+    assert doc["axes"]["z"]["band_coverage"] > 0.85
+    head = next(ln for ln in (tmp_path / "p.csv").read_text().splitlines() if not ln.startswith("#"))
+    assert head == "time_s,x_um,x_sd_um,x_model_um,y_um,y_sd_um,y_model_um,z_um,z_sd_um,z_model_um"
+
+
+def test_estimate_with_a_bad_probe_file_names_the_line(room_run, capsys, tmp_path):
+    rec, _ = room_run
+    bad = tmp_path / "bad.csv"
+    bad.write_text("time_s,seq,z_um,sd_um\n7200,1,2.0,0.3\n10800,1,2.5,0.3\n")
+    code, out = cli(["estimate", "--profile", "sim-vmc", rec, "--probes", bad], capsys)
+    assert code == 4
+    assert f"{bad}:3: sequence number 1 does not follow 1" in out.err
+    code, out = cli(["estimate", "--profile", "sim-vmc", rec, "--probes", bad, "--initial-state", "fit"], capsys)
+    assert code == 2
+    assert "--initial-state fit is not used with them" in out.err

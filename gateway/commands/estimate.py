@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
+from typing import Any
 
 from gateway.commands._common import add_recording_options, load_model_for, read_recordings
-from gateway.errors import GatewayError
+from gateway.errors import GatewayError, UsageError
 from gateway.estimate import ALIGN_CHOICES, INITIAL_STATES, estimate, metrics_json, plot_estimates
 from gateway.prepare import INITIAL_CHOICES
 from gateway.profile import load_profile
@@ -40,6 +42,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="a recording that ended before the first one (the previous day): the model runs over it "
                         "first, so the recording starts in the state it left; with several recordings, each "
                         "one is the next one's history")
+    p.add_argument("--probes", metavar="PROBES",
+                   help="a probe CSV (time, seq, x_um, y_um, z_um, sd_um): the estimate is the model updated by "
+                        "the probes taken during each recording, with its 95 %% band; -o writes it with "
+                        "<axis>_sd_um and <axis>_model_um columns")
     add_recording_options(p)
     p.set_defaults(func=run)
 
@@ -52,6 +58,8 @@ def run(args: argparse.Namespace) -> int:
     history = None
     if args.history:
         history = read_recordings([args.history], profile, period_s=args.period_s, require_displacement=False)[0]
+    if args.probes:
+        return _run_probed(args, profile, model, model_path, recs, history)
     ests = []
     for r in recs:
         ests.append(estimate(model, r, initial=args.initial, gap_policy=args.gap_policy, align=args.align,
@@ -84,4 +92,54 @@ def run(args: argparse.Namespace) -> int:
         plot_estimates(ests, args.plot, title=f"{profile.name}: {model_path.name}")
         if not args.json:
             print(f"wrote {args.plot}")
+    return 0
+
+
+def _run_probed(args: argparse.Namespace, profile: Any, model: Any, model_path: Path, recs: list[Any],
+                history: Any) -> int:
+    """``--probes``: the model updated by the probe file's probes, per recording (see gateway.adaptive)."""
+    from gateway.adaptive.offline import estimate_with_probes
+    from gateway.adaptive.probes import read_probes
+
+    if args.initial_state != "rest":
+        raise UsageError("--probes: the probes teach the state the model misses; --initial-state fit is not "
+                         "used with them (expected --initial-state rest)")
+    probes = read_probes(args.probes, axes=model.axes)
+    runs, figures = [], []
+    for r in recs:
+        base = estimate(model, r, initial=args.initial, gap_policy=args.gap_policy, align=args.align,
+                        history=history)
+        pr = estimate_with_probes(model, r, probes, initial=args.initial, gap_policy=args.gap_policy,
+                                  history=history)
+        runs.append(pr)
+        figures.append(pr.figures(base.measured))
+        if history is not None:
+            history = continued(history, r)
+    if args.output:
+        out = Path(args.output)
+        meta = {"model": str(model_path), "profile": str(profile.path), "probes": str(args.probes)}
+        if len(runs) == 1 and not out.is_dir():
+            out.write_text(runs[0].to_csv({**meta, "recording": runs[0].recording}))
+        else:
+            if out.exists() and not out.is_dir():
+                raise GatewayError(f"{out}: expected a directory for {len(runs)} recordings")
+            out.mkdir(parents=True, exist_ok=True)
+            for pr in runs:
+                (out / f"{Path(pr.recording).stem}.pred.csv").write_text(
+                    pr.to_csv({**meta, "recording": pr.recording}))
+    if args.json:
+        print(json.dumps([{"recording": pr.recording, "probes_applied": pr.applied(), "refused": pr.refused(),
+                           "probes_outside": pr.outside, "axes": fig} for pr, fig in zip(runs, figures, strict=True)],
+                         indent=1))
+        return 0
+    for pr, fig in zip(runs, figures, strict=True):
+        print(f"{pr.recording} (model {model_path}, updated by {args.probes}): {pr.applied()} probe-axes applied, "
+              f"{len(pr.refused())} refused" + (f", {pr.outside} probes outside this recording" if pr.outside else ""))
+        for line in pr.refused():
+            print(f"  refused: {line}")
+        if not fig:
+            print("  no measured displacement: estimates only")
+        for a, f in fig.items():
+            print(f"  {a}: RMS {f['rms_um']:.3f} um, max |error| {f['max_abs_error_um']:.3f} um, the 95 % band covers "
+                  f"{100 * f['band_coverage']:.1f} % ({f['windows']} windows)")
     return 0
