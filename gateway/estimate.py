@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from gateway.model.coverage import CoverageCheck, check_coverage
 from gateway.model.model import ThermalModel
 from gateway.prepare import prepare
 from gateway.recording import Recording, continued, format_recording
@@ -82,6 +83,8 @@ class Estimate:
     metrics: dict[str, AxisMetrics]
     notes: tuple[str, ...] = ()
     settings: dict[str, str] = field(default_factory=dict)
+    #: where the recording left the factor region the identification covered (None: the model records none)
+    coverage: CoverageCheck | None = None
 
     @property
     def residual(self) -> np.ndarray:
@@ -93,7 +96,12 @@ class Estimate:
             "settings": self.settings,
             "axes": {a: _finite(asdict(m)) for a, m in self.metrics.items()},
             "notes": list(self.notes),
+            "coverage": None if self.coverage is None else coverage_json(self.coverage, self.window_s),
         }
+
+    @property
+    def window_s(self) -> float:
+        return float(np.median(np.diff(self.time_s))) if len(self.time_s) > 1 else 0.0
 
     def to_csv(self, meta: dict[str, str] | None = None) -> str:
         cols: dict[str, np.ndarray] = {}
@@ -101,6 +109,8 @@ class Estimate:
             cols[f"{a}_est_um"] = self.estimated[i]
             cols[f"{a}_meas_um"] = self.measured[i]
             cols[f"{a}_resid_um"] = self.residual[i]
+        if self.coverage is not None:
+            cols["outside_coverage"] = self.coverage.outside.astype(float)
         return format_recording(time_s=self.time_s, columns=cols, meta={**self.settings, **(meta or {})})
 
 
@@ -142,7 +152,8 @@ def estimate(
     du = prep.du[:, skip:]
     measured = prep.y[:, skip:].copy()
     time_s = prep.time_s[skip:]
-    notes = list(prep.notes) + extrapolation_notes(model, du)
+    check = check_coverage(model.coverage, du, model.factors, model.units) if model.coverage is not None else None
+    notes = list(prep.notes) + (check.notes(rec.period_s) if check is not None else extrapolation_notes(model, du))
     if history is not None:
         notes.append(f"started in the state {history.source} left ({len(history)} windows before this recording)")
     if initial_state == "fit":
@@ -176,7 +187,15 @@ def estimate(
         settings["history"] = history.source
     return Estimate(recording=rec.source, axes=model.axes, time_s=time_s, estimated=est,
                     measured=measured, present=prep.present[skip:], metrics=metrics, notes=tuple(notes),
-                    settings=settings)
+                    settings=settings, coverage=check)
+
+
+def coverage_json(check: CoverageCheck, window_s: float) -> dict[str, object]:
+    """The coverage check as JSON: windows outside, and per excursion what, how far, how long."""
+    return {"windows_outside": check.windows_outside,
+            "excursions": [{"what": e.what, "kind": e.kind, "side": e.side, "value": e.value, "bound": e.bound,
+                            "windows": e.windows, "longest_s": e.longest * window_s, "first_window": e.first + 1,
+                            "unit": e.unit} for e in check.excursions]}
 
 
 def _fit_initial_state(model: ThermalModel, time_s: np.ndarray, est: np.ndarray,

@@ -80,10 +80,15 @@ def test_identification_reports_structure_and_reference_state(identified):
 
 
 def test_estimate_warns_where_the_model_extrapolates(identified):
-    """The production day runs the spindle at up to 3000 rpm; identification went to 1000 rpm."""
+    """The production day runs the spindle at up to 3000 rpm, where field weakening lowers the stator current
+    per rpm; identification went to 1000 rpm. The model's coverage says which factor, how far, how long."""
     _, result = identified
     day = estimate(result.model, simulate(load_scenario("production-day")).recording())
-    assert ("factor spindle_speed reaches 3000 rpm above its reference, 3.0x the largest in the identification "
-            "experiments (1000 rpm): the model extrapolates there") in day.notes
+    notes = [n for n in day.notes if n.startswith("outside the identification's coverage")]
+    assert any("spindle_speed above coverage: up to 3000 rpm, 3x the highest covered (1000 rpm)" in n for n in notes)
+    ratio = next(n for n in notes if "spindle_i1_sq per spindle_speed (ratio) below coverage" in n)
+    assert re.search(r"down to 0\.01\d+ A\^2/rpm, 0\.0\d+x the lowest covered", ratio), ratio
+    assert 0.3 < day.coverage.windows_outside / len(day.time_s) < 0.6  # most of both shifts
     paper_kind = estimate(result.model, simulate(load_scenario("spindle-feeds")).recording())
-    assert not [n for n in paper_kind.notes if "extrapolates" in n]
+    assert paper_kind.coverage.windows_outside == 0
+    assert not [n for n in paper_kind.notes if "coverage" in n]

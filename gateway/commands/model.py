@@ -12,6 +12,7 @@ from pathlib import Path
 from gateway.commands._common import add_recording_options, load_model_for, read_recordings
 from gateway.identify.api import identification_summary
 from gateway.model import load_model, save_model
+from gateway.model.coverage import describe_coverage
 from gateway.model.envelope import describe_envelope, envelope_of
 from gateway.prepare import prepare
 from gateway.profile import load_profile
@@ -54,6 +55,7 @@ def run_show(args: argparse.Namespace) -> int:
                                                  for f, v in model.reference.items()))
     print("\n".join(identification_summary(model)))
     print("\n".join(describe_envelope(model.envelope)))
+    print("\n".join(describe_coverage(model.coverage, model.units)))
     return 0
 
 

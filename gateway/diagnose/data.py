@@ -20,6 +20,7 @@ import numpy as np
 
 from gateway.errors import GatewayError
 from gateway.estimate import LEAD_IN_MAX
+from gateway.model.coverage import check_coverage
 from gateway.model.inputs import Column, DerivedInput, evaluate_inputs, hold_missing, initial_values
 from gateway.model.model import PathTF, ThermalModel
 from gateway.model.terms import FirstOrder, Term
@@ -230,6 +231,9 @@ def build_stack(model: ThermalModel, recordings: Sequence[Recording], *, gap_pol
         p = prepare(rec, factors=model.factors, axes=model.axes, initial="first", gap_policy=gap_policy,
                     inputs=model.inputs)
         notes += [f"{p.name}: {n}" for n in p.notes]
+        if model.coverage is not None:  # where the model extrapolates, a residual is not missing physics alone
+            notes += [f"{p.name}: {n}" for n in
+                      check_coverage(model.coverage, p.du, model.factors, model.units).notes(dt)]
         names.append(p.name)
         srcs.append(rec.source)
         prints.append(rec.fingerprint(model.factors))

@@ -16,6 +16,7 @@ from gateway.errors import IdentificationError
 from gateway.identify.common import ExperimentSet
 from gateway.identify.joint import CANDIDATES, AxisSelection, select_axis
 from gateway.identify.paper import active_factors, describe_groups, identify_paper
+from gateway.model.coverage import coverage_of
 from gateway.model.envelope import envelope_of
 from gateway.model.model import ThermalModel, model_problems
 from gateway.prepare import prepare
@@ -141,7 +142,9 @@ def _identify(
     # what these experiments support: the live gateway holds the offsets beyond it (gateway.live.plausibility)
     envelope = envelope_of(model, ((p.du, p.y) for p in preps), window_s=es.dt_s,
                            source=f"identification: {len(preps)} experiments")
-    model = replace(model, envelope=envelope)
+    # where in factor space the model was fitted: estimate, run and diagnose say when a recording leaves it
+    coverage = coverage_of((p.du for p in preps), factors, source=f"identification: {len(preps)} recordings")
+    model = replace(model, envelope=envelope, coverage=coverage)
     problems = model_problems(model)
     if problems:  # e.g. a factor that barely moves in the experiments: a gain of millions of um per unit
         raise IdentificationError(

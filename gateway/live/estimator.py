@@ -42,6 +42,7 @@ import numpy as np
 from gateway.errors import ModelError
 from gateway.live.settings import Live
 from gateway.model import LiveEstimator, ThermalModel
+from gateway.model.coverage import check_coverage
 from gateway.model.inputs import Column, InputStepper, Product, initial_values
 from gateway.windows import WindowRecord
 
@@ -86,6 +87,9 @@ class EstimateUpdate:
     notes: tuple[str, ...] = ()
     #: standard uncertainty per axis (um) when probes update the model (gateway.adaptive); empty otherwise
     sd_um: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
+    #: why this window's factors lie outside the region the identification covered ("" inside, or the model
+    #: records none): the estimate extrapolates (gateway.model.coverage)
+    outside_coverage: str = ""
 
 
 def bad_reason(record: WindowRecord, factors: Iterable[str], channels: Mapping[str, str] | None = None) -> str:
@@ -307,6 +311,14 @@ class Estimator:
     def _rebuilt(self, first_index: int, du: np.ndarray) -> None:
         """The rebuild replayed windows ``first_index``.. with inputs ``du``; a subclass layers on it."""
 
+    def outside_coverage(self, du: np.ndarray) -> str:
+        """Why input deviations ``du`` (one window) lie outside the model's coverage ("" inside)."""
+        cov = self.model.coverage
+        if cov is None:
+            return ""
+        check = check_coverage(cov, np.asarray(du, dtype=float)[: len(self.model.factors), None], self.model.factors)
+        return "; ".join(f"{e.what} {e.value:.4g} ({e.side} the covered {e.bound:.4g})" for e in check.excursions)
+
     def _axes_map(self, y: np.ndarray) -> Mapping[str, float]:
         return MappingProxyType({a: float(v) for a, v in zip(self.model.axes, y, strict=True)})
 
@@ -328,7 +340,8 @@ class Estimator:
         upd = EstimateUpdate(index=record.index, end_s=record.end_s, estimate_um=self._axes_map(y),
                              next_um=self._predict(cols[:, -1]),
                              factors=MappingProxyType(dict(record.factors)), usable=not reason, reason=reason,
-                             filled=filled, first_live=self.live_windows == 0, notes=record.notes)
+                             filled=filled, first_live=self.live_windows == 0, notes=record.notes,
+                             outside_coverage="" if reason else self.outside_coverage(cols[:, -1]))
         self.live_windows += 1
         self.last = upd
         return upd

@@ -94,6 +94,7 @@ class LiveGateway:
         self.started_wall: float | None = None
         self.started_s: float | None = None
         self.windows_live = 0
+        self._outside_since: tuple[int, ...] = ()  # first window of the current stretch outside coverage
         self.update_s: list[float] = []  # estimator step time per window (wall s)
         self.store_failures = 0  # windows the store could not commit (not acted on)
         self.last_record: WindowRecord | None = None
@@ -317,6 +318,7 @@ class LiveGateway:
             if self.audit is not None:
                 self.audit.event(self.clock.now(), "gap", "estimator", gap.describe(self.profile.sampling.window_s))
         self._log_window(record, update)
+        self._note_coverage(record, update)
         self._publish_health(record, update)
         if self.outputs:
             from gateway.outputs import snapshot
@@ -345,6 +347,20 @@ class LiveGateway:
                         "devices_in_error": {n: d.describe_error() for n, d in record.devices.items()
                                              if d.in_error},
                         "alarms": alarms})
+
+    def _note_coverage(self, record: WindowRecord, update: EstimateUpdate) -> None:
+        """Log when the windows leave the identification's factor region and when they come back."""
+        if update.outside_coverage and not self._outside_since:
+            self._outside_since = (record.index,)
+            log.warning("window %d leaves the identification's coverage: %s: the estimate extrapolates",
+                        record.index, update.outside_coverage,
+                        extra={"event": "coverage", "window": record.index, "outside": update.outside_coverage})
+        elif not update.outside_coverage and self._outside_since and not update.reason:
+            first = self._outside_since[0]
+            self._outside_since = ()
+            log.info("window %d back inside the identification's coverage (outside since window %d, %d windows)",
+                     record.index, first, record.index - first,
+                     extra={"event": "coverage", "window": record.index, "outside": ""})
 
     def _publish_health(self, record: WindowRecord | None = None, update: EstimateUpdate | None = None) -> None:
         if self.opcua is not None and self._state in ("running", "starting"):
@@ -377,7 +393,8 @@ class LiveGateway:
             "factors": {} if rec is None else dict(rec.factors),
             "estimate": None if est is None else {"window": est.index, "end_s": est.end_s,
                                                    "estimate_um": dict(est.estimate_um), "usable": est.usable,
-                                                   "reason": est.reason, "sd_um": dict(est.sd_um)},
+                                                   "reason": est.reason, "sd_um": dict(est.sd_um),
+                                                   "outside_coverage": est.outside_coverage},
             "compensation": self.writer.status() if self.writer is not None else None,
             "gaps": {"filled_windows": hist.filled_total if hist else 0, "policy": self.profile.live.gap_policy,
                      "last": hist.gaps[-1].describe(self.profile.sampling.window_s) if hist and hist.gaps else ""},

@@ -22,6 +22,7 @@ import tomli_w
 from gateway.errors import ModelError
 from gateway.model import limits
 from gateway.model.discrete import Section
+from gateway.model.coverage import Coverage, coverage_to_toml, parse_coverage
 from gateway.model.envelope import Envelope, envelope_to_toml, parse_envelope
 from gateway.model.inputs import DerivedInput, check_order, input_to_toml, parse_inputs
 from gateway.model.terms import TERM_KINDS, FirstOrder, SecondOrder, Term
@@ -125,6 +126,8 @@ class ThermalModel:
     inputs: tuple[DerivedInput, ...] = ()
     #: what the identification data support (:mod:`gateway.model.envelope`); ``None`` in older files
     envelope: Envelope | None = None
+    #: the factor region the identification data covered (:mod:`gateway.model.coverage`); ``None`` in older files
+    coverage: Coverage | None = None
 
     def __post_init__(self) -> None:
         if len(set(self.axes)) != len(self.axes) or len(set(self.factors)) != len(self.factors):
@@ -180,7 +183,8 @@ class ThermalModel:
                 and {k: _path_key(v) for k, v in self.paths.items()}
                 == {k: _path_key(v) for k, v in other.paths.items()}
                 and self.machine == other.machine and _plain(self.info) == _plain(other.info)
-                and self.inputs == other.inputs and self.envelope == other.envelope)
+                and self.inputs == other.inputs and self.envelope == other.envelope
+                and self.coverage == other.coverage)
 
     __hash__ = None  # type: ignore[assignment]
 
@@ -353,6 +357,8 @@ def model_to_toml(model: ThermalModel) -> str:
         doc["inputs"] = {d.name: input_to_toml(d) for d in model.inputs}
     if model.envelope is not None:
         doc["envelope"] = envelope_to_toml(model.envelope)
+    if model.coverage is not None:
+        doc["coverage"] = coverage_to_toml(model.coverage)
     paths = []
     for a in model.axes:
         for f in model.input_names:
@@ -434,6 +440,8 @@ def load_model(path: str | Path, *, text: str | None = None) -> ThermalModel:
         f, min=-limits.REFERENCE_MAX, max=limits.REFERENCE_MAX, expected=limits.REFERENCE_EXPECTED))
     env_t = root.table("envelope")
     envelope = parse_envelope(env_t, axes) if env_t is not None else None
+    cov_t = root.table("coverage")
+    coverage = parse_coverage(cov_t, factors) if cov_t is not None else None
     info_t = root.table("info")
     info = _parse_info(info_t, factors) if info_t is not None else {}
 
@@ -455,7 +463,8 @@ def load_model(path: str | Path, *, text: str | None = None) -> ThermalModel:
     root.done()
     doc.raise_problems()
     return ThermalModel(axes=axes, factors=factors, units=units, reference=reference, paths=paths,
-                        machine=machine, info=info, inputs=tuple(inputs), envelope=envelope)
+                        machine=machine, info=info, inputs=tuple(inputs), envelope=envelope,
+                        coverage=coverage)
 
 
 def _name_table(t: Table | None, factors: Sequence[str], get: Callable[[Table, str], Any]) -> dict[str, Any]:

@@ -1,0 +1,356 @@
+"""The region of factor space a model's identification data covered, and where a recording leaves it.
+
+A model is linear in each factor, but how it splits a response between factors that change together
+(spindle speed, stator and rotor current squared; a feed and its motor current squared) is fixed only
+along the combinations its data showed. Identification records:
+
+- per factor, the range of its deviation from the reference (lowest, highest);
+- per pair of co-varying factors (factors that every identification recording moves together or not at
+  all), the range of their ratio ``du_of / du_per`` over the windows where ``per`` is on (at least
+  ``on_share`` of its highest deviation): e.g. stator current squared per rpm (field weakening lowers it at
+  high speed), rotor current squared per stator current squared (a cutting load raises it).
+
+A recording leaves the region where a factor goes beyond its range by more than ``margin`` of the range, or
+a ratio beyond its range by more than the factor ``1 + margin`` (ratios that stay positive) or ``margin``
+of its span; :func:`check_coverage` says which factor or ratio, how far and for how long, and marks every
+such window. There the estimate extrapolates from what the identification saw.
+
+In the model file::
+
+    [coverage]
+    source = "identification: 9 experiments"
+    on_share = 0.1           # a ratio counts in windows where its "per" factor is at least this share on
+    margin = 0.2
+    [coverage.range]         # deviation from the reference, [lowest, highest]
+    spindle_speed = [0.0, 1000.0]
+    [coverage.ratio]         # "of/per" = [lowest, highest] ratio of the deviations
+    "spindle_i1_sq/spindle_speed" = [0.19, 1.4]
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from gateway.tomlcheck import Table
+
+#: a ratio counts over the windows where its denominator is at least this share of its highest deviation
+ON_SHARE = 0.1
+#: tolerance beyond a range (share of its span) or a positive ratio range (factor 1 + MARGIN)
+MARGIN = 0.2
+#: a factor "moves" in a recording when its deviation exceeds this share of its largest in all of them
+MOVES_SHARE = 0.01
+#: bounds on stored values: anything beyond is a corrupt file, not a machine
+MAX_VALUE = 1e12
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Ratio:
+    """``du_of / du_per`` ranged over [low, high] where ``per`` was on."""
+
+    of: str
+    per: str
+    low: float
+    high: float
+
+    @property
+    def key(self) -> str:
+        return f"{self.of}/{self.per}"
+
+
+@dataclass(frozen=True, kw_only=True)
+class Coverage:
+    """Ranges of the factors' deviations and of the ratios of co-varying factors the identification saw."""
+
+    ranges: Mapping[str, tuple[float, float]]
+    ratios: tuple[Ratio, ...] = ()
+    source: str = ""
+    on_share: float = ON_SHARE
+    margin: float = MARGIN
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "ranges", MappingProxyType({k: (float(a), float(b))
+                                                             for k, (a, b) in self.ranges.items()}))
+        object.__setattr__(self, "ratios", tuple(self.ratios))
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Excursion:
+    """One way a recording left the covered region: a factor's range or a ratio's, how far, how long."""
+
+    what: str  # the factor, or "of per per"
+    kind: str  # "range" or "ratio"
+    side: str  # "above" or "below"
+    value: float  # the most extreme value reached
+    bound: float  # the covered bound it passed (highest or lowest)
+    windows: int  # windows outside
+    longest: int  # windows in the longest unbroken stretch outside
+    first: int  # index of the first window outside
+    unit: str = ""
+
+    def how_far(self) -> str:
+        """The extreme value against the covered bound, as a multiple when that means something."""
+        u = f" {self.unit}" if self.unit else ""
+        if self.bound != 0 and self.value / self.bound > 0:
+            return f"{self.value:.4g}{u}, {self.value / self.bound:.2g}x the {_word(self.side)} covered ({self.bound:.4g}{u})"
+        return f"{self.value:.4g}{u}, {self.side} the covered {_word(self.side)} {self.bound:.4g}{u}"
+
+    def describe(self, window_s: float) -> str:
+        name = f"{self.what} ({self.kind})" if self.kind == "ratio" else self.what
+        reach = "up to" if self.side == "above" else "down to"
+        return (f"{name} {self.side} coverage: {reach} {self.how_far()}; {self.windows} windows "
+                f"({_duration(self.windows * window_s)}), longest stretch {_duration(self.longest * window_s)}, "
+                f"first at window {self.first + 1}")
+
+
+def _word(side: str) -> str:
+    return "highest" if side == "above" else "lowest"
+
+
+def _duration(s: float) -> str:
+    return f"{s / 3600:.3g} h" if s >= 3600 else f"{s / 60:.3g} min"
+
+
+@dataclass(frozen=True, kw_only=True)
+class CoverageCheck:
+    """Per window whether it lies outside the covered region, and every excursion."""
+
+    outside: np.ndarray  # (N,) bool
+    excursions: tuple[Excursion, ...] = ()
+    #: per window, the excursions that window is in (indices into ``excursions``): for a per-window flag
+    reasons: tuple[tuple[int, ...], ...] = field(default=())
+
+    @property
+    def windows_outside(self) -> int:
+        return int(np.count_nonzero(self.outside))
+
+    def notes(self, window_s: float) -> list[str]:
+        """One line per excursion, for a report."""
+        return [f"outside the identification's coverage: {e.describe(window_s)}: the estimate extrapolates there"
+                for e in self.excursions]
+
+    def window_reason(self, k: int) -> str:
+        """Why window ``k`` is outside (``""`` inside)."""
+        if not self.reasons or not self.outside[k]:
+            return ""
+        return "; ".join(f"{self.excursions[i].what} {self.excursions[i].side}" for i in self.reasons[k])
+
+
+# ------------------------------------------------------------------------------------------------ building --
+def co_varying_pairs(factors: Sequence[str], moving: np.ndarray) -> list[tuple[str, str]]:
+    """(of, per) pairs of factors that move together in every recording (``moving``: recordings x factors).
+
+    ``per`` comes first in ``factors``. A factor no recording moves pairs with nothing.
+    """
+    moving = np.asarray(moving, dtype=bool)
+    out = []
+    for a in range(len(factors)):
+        for b in range(a + 1, len(factors)):
+            ma, mb = moving[:, a], moving[:, b]
+            if ma.any() and np.array_equal(ma, mb):
+                out.append((factors[b], factors[a]))
+    return out
+
+
+def coverage_of(du_list: Iterable[np.ndarray], factors: Sequence[str], *, source: str = "",
+                on_share: float = ON_SHARE, margin: float = MARGIN) -> Coverage:
+    """The region covered by recordings given as deviations ``du`` (factors first, N), NaN allowed."""
+    dus = [np.asarray(du, dtype=float)[: len(factors)] for du in du_list]
+    dus = [du for du in dus if du.shape[1]]
+    if not dus:
+        return Coverage(ranges={f: (0.0, 0.0) for f in factors}, source=source, on_share=on_share, margin=margin)
+    pooled = np.concatenate(dus, axis=1)
+    lo = np.nan_to_num(np.nanmin(np.where(np.isfinite(pooled), pooled, np.nan), axis=1), nan=0.0)
+    hi = np.nan_to_num(np.nanmax(np.where(np.isfinite(pooled), pooled, np.nan), axis=1), nan=0.0)
+    lo, hi = np.minimum(lo, 0.0), np.maximum(hi, 0.0)  # the reference itself is covered
+    size = np.maximum(np.abs(lo), np.abs(hi))
+    moving = np.array([[np.nanmax(np.abs(du[j])) > MOVES_SHARE * size[j] if size[j] > 0 else False
+                        for j in range(len(factors))] for du in dus])
+    ratios = []
+    for of, per in co_varying_pairs(factors, moving):
+        i, j = factors.index(of), factors.index(per)
+        if hi[j] <= 0:
+            continue
+        on = np.isfinite(pooled[i]) & (pooled[j] >= on_share * hi[j])
+        if not on.any():
+            continue
+        r = pooled[i, on] / pooled[j, on]
+        ratios.append(Ratio(of=of, per=per, low=float(r.min()), high=float(r.max())))
+    return Coverage(ranges={f: (float(lo[k]), float(hi[k])) for k, f in enumerate(factors)}, ratios=tuple(ratios),
+                    source=source, on_share=on_share, margin=margin)
+
+
+def merged(a: Coverage, b: Coverage) -> Coverage:
+    """The union of two regions (ranges widened; a ratio kept only where both have it, widened)."""
+    ranges = dict(a.ranges)
+    for f, (lo, hi) in b.ranges.items():
+        old = ranges.get(f)
+        ranges[f] = (lo, hi) if old is None else (min(old[0], lo), max(old[1], hi))
+    theirs = {r.key: r for r in b.ratios}
+    ratios = tuple(Ratio(of=r.of, per=r.per, low=min(r.low, theirs[r.key].low), high=max(r.high, theirs[r.key].high))
+                   for r in a.ratios if r.key in theirs)
+    return Coverage(ranges=ranges, ratios=ratios, source=f"{a.source}; {b.source}", on_share=a.on_share,
+                    margin=a.margin)
+
+
+# ------------------------------------------------------------------------------------------------ checking --
+def _runs(mask: np.ndarray) -> tuple[int, int]:
+    """(longest unbroken run of True, index of the first True)."""
+    idx = np.flatnonzero(mask)
+    if not idx.size:
+        return 0, -1
+    breaks = np.flatnonzero(np.diff(idx) > 1)
+    starts = np.concatenate([[0], breaks + 1])
+    ends = np.concatenate([breaks, [idx.size - 1]])
+    return int((ends - starts + 1).max()), int(idx[0])
+
+
+def check_coverage(cov: Coverage, du: np.ndarray, factors: Sequence[str],
+                   units: Mapping[str, str] | None = None) -> CoverageCheck:
+    """Where the deviations ``du`` (factors first, N windows) leave ``cov``; NaN windows count as inside."""
+    du = np.asarray(du, dtype=float)
+    n = du.shape[1] if du.ndim == 2 else 0
+    units = units or {}
+    masks: list[np.ndarray] = []
+    excursions: list[Excursion] = []
+
+    def add(mask: np.ndarray, values: np.ndarray, what: str, kind: str, side: str, bound: float, unit: str) -> None:
+        if not mask.any():
+            return
+        v = values[mask]
+        longest, first = _runs(mask)
+        excursions.append(Excursion(what=what, kind=kind, side=side, bound=bound, windows=int(mask.sum()),
+                                    value=float(v.max() if side == "above" else v.min()), longest=longest,
+                                    first=first, unit=unit))
+        masks.append(mask)
+
+    index = {f: k for k, f in enumerate(factors)}
+    for f, (lo, hi) in cov.ranges.items():
+        if f not in index or n == 0:
+            continue
+        x = np.nan_to_num(du[index[f]], nan=0.0)
+        span = hi - lo
+        # a factor the identification never moved: any move beyond rounding leaves the region
+        tol = cov.margin * span if span > 0 else 1e-9 * (1.0 + float(np.max(np.abs(x), initial=0.0)))
+        add(x > hi + tol, x, f, "range", "above", hi, units.get(f, ""))
+        add(x < lo - tol, x, f, "range", "below", lo, units.get(f, ""))
+    for r in cov.ratios:
+        if r.of not in index or r.per not in index or n == 0:
+            continue
+        hi_per = cov.ranges.get(r.per, (0.0, 0.0))[1]
+        x_of, x_per = du[index[r.of]], du[index[r.per]]
+        on = np.isfinite(x_of) & np.isfinite(x_per) & (x_per >= cov.on_share * hi_per) & (x_per > 0)
+        ratio = np.where(on, x_of / np.where(on, x_per, 1.0), np.nan)
+        if r.low > 0:
+            above, below = r.high * (1 + cov.margin), r.low / (1 + cov.margin)
+        else:
+            w = cov.margin * max(r.high - r.low, abs(r.high), abs(r.low), 1e-300)
+            above, below = r.high + w, r.low - w
+        u_of, u_per = units.get(r.of, ""), units.get(r.per, "")
+        unit = f"{u_of}/{u_per}" if u_of and u_per else ""
+        with np.errstate(invalid="ignore"):
+            add(on & (ratio > above), ratio, f"{r.of} per {r.per}", "ratio", "above", r.high, unit)
+            add(on & (ratio < below), ratio, f"{r.of} per {r.per}", "ratio", "below", r.low, unit)
+    outside = np.zeros(n, dtype=bool)
+    for m in masks:
+        outside |= m
+    reasons = tuple(tuple(i for i, m in enumerate(masks) if m[k]) for k in range(n)) if excursions else ()
+    return CoverageCheck(outside=outside, excursions=tuple(excursions), reasons=reasons)
+
+
+# ------------------------------------------------------------------------------------------------ TOML -----
+def coverage_to_toml(cov: Coverage) -> dict[str, Any]:
+    """The ``[coverage]`` table."""
+    out: dict[str, Any] = {}
+    if cov.source:
+        out["source"] = cov.source
+    out["on_share"] = float(cov.on_share)
+    out["margin"] = float(cov.margin)
+    out["range"] = {f: [float(lo), float(hi)] for f, (lo, hi) in cov.ranges.items()}
+    if cov.ratios:
+        out["ratio"] = {r.key: [float(r.low), float(r.high)] for r in cov.ratios}
+    return out
+
+
+def _pair(t: Table, key: str, expected: str) -> tuple[float, float] | None:
+    pair = t.float_list(key, expected=expected)
+    if pair is None:
+        return None
+    if len(pair) != 2 or pair[0] > pair[1] or any(abs(v) > MAX_VALUE for v in pair):
+        t.problem(key, f"expected {expected}, got {list(pair)!r}")
+        return None
+    return pair[0], pair[1]
+
+
+def parse_coverage(t: Table, factors: Sequence[str]) -> Coverage | None:
+    """Read ``[coverage]``; ``None`` after reporting a problem."""
+    source = t.str("source", default="")
+    on_share = t.float("on_share", default=ON_SHARE, min=0.0, max=1.0, min_exclusive=True,
+                       expected="the share of its highest deviation a ratio's denominator must reach, in (0, 1]")
+    margin = t.float("margin", default=MARGIN, min=0.0, max=100.0,
+                     expected="the tolerance beyond a covered range, a share of it, in [0, 100]")
+    ok = on_share is not None and margin is not None
+    ranges: dict[str, tuple[float, float]] = {}
+    rt = t.table("range", required=True, expected="a table of factor -> [lowest, highest] deviation")
+    if rt is None:
+        ok = False
+    else:
+        for f in rt:
+            if f not in factors:
+                rt.problem(f, f"not a factor of this model (factors: {', '.join(factors)})")
+                rt.raw(f)
+                ok = False
+                continue
+            pair = _pair(rt, f, "[lowest, highest] deviation of the factor in the identification data, lowest <= "
+                                "highest")
+            if pair is None:
+                ok = False
+            else:
+                ranges[f] = pair
+        rt.done()
+    ratios = []
+    qt = t.table("ratio", expected='a table of "of/per" -> [lowest, highest] ratio')
+    if qt is not None:
+        for key in qt:
+            parts = key.split("/")
+            if len(parts) != 2 or parts[0] not in factors or parts[1] not in factors or parts[0] == parts[1]:
+                qt.problem(key, f'expected a key "of/per" naming two different factors of this model (factors: '
+                                f'{", ".join(factors)})')
+                qt.raw(key)
+                ok = False
+                continue
+            pair = _pair(qt, key, "[lowest, highest] ratio of the two factors' deviations, lowest <= highest")
+            if pair is None:
+                ok = False
+            else:
+                ratios.append(Ratio(of=parts[0], per=parts[1], low=pair[0], high=pair[1]))
+        qt.done()
+    t.done()
+    if not ok:
+        return None
+    return Coverage(ranges=ranges, ratios=tuple(ratios), source=source or "", on_share=on_share, margin=margin)
+
+
+def describe_coverage(cov: Coverage | None, units: Mapping[str, str] | None = None) -> list[str]:
+    """Lines for ``cncgw model show``."""
+    if cov is None:
+        return ["coverage: none recorded (a model written before cncgw recorded one: estimates are not checked "
+                "against the identification's factor region)"]
+    units = units or {}
+    lines = [f"coverage ({cov.source or 'source not stated'}): deviations from the reference"]
+    for f, (lo, hi) in cov.ranges.items():
+        u = f" {units[f]}" if units.get(f) else ""
+        lines.append(f"  {f}: {lo:.4g} .. {hi:.4g}{u}")
+    for r in cov.ratios:
+        lines.append(f"  {r.of} per {r.per}: {r.low:.4g} .. {r.high:.4g} (where {r.per} >= "
+                     f"{cov.on_share:g} of its highest)")
+    return lines
+
+
+__all__ = ["Coverage", "CoverageCheck", "Excursion", "Ratio", "check_coverage", "co_varying_pairs", "coverage_of",
+           "coverage_to_toml", "describe_coverage", "merged", "parse_coverage"]

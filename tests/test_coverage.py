@@ -1,0 +1,150 @@
+"""Coverage: the factor region a model's identification data covered, stored in the model file, and what
+estimate, the live estimator and diagnosis say when a recording leaves it."""
+
+from __future__ import annotations
+
+import math
+from types import MappingProxyType
+
+import numpy as np
+import pytest
+
+from gateway.errors import ModelError
+from gateway.estimate import estimate
+from gateway.live.estimator import Estimator
+from gateway.live.settings import Live
+from gateway.model import PathTF, ThermalModel, load_model, model_to_toml
+from gateway.model.coverage import Coverage, Ratio, check_coverage, co_varying_pairs, coverage_of
+from gateway.model.terms import FirstOrder
+from gateway.recording import Recording
+from gateway.windows import ChannelStats, DeviceQuality, WindowRecord
+
+FACTORS = ("speed", "i1_sq", "feed")
+
+
+def spindle_run(rpm: float, i1_per_rpm: float, *, n: int = 120, on: tuple[int, int] = (10, 70)) -> np.ndarray:
+    """Deviations of a run: the spindle at ``rpm`` for windows ``on`` with the current following it."""
+    du = np.zeros((3, n))
+    du[0, on[0]: on[1]] = rpm
+    du[1, on[0]: on[1]] = rpm * i1_per_rpm
+    return du
+
+
+def feed_run(mm_min: float, n: int = 120) -> np.ndarray:
+    du = np.zeros((3, n))
+    du[2, 10:70] = mm_min
+    return du
+
+
+def test_ranges_and_ratios_of_factors_that_move_together():
+    cov = coverage_of([spindle_run(1000, 0.2), spindle_run(500, 0.4), feed_run(3000)], FACTORS, source="3 runs")
+    assert cov.ranges == {"speed": (0.0, 1000.0), "i1_sq": (0.0, 200.0), "feed": (0.0, 3000.0)}
+    # speed and current move in the same runs, the feed in another: one ratio
+    assert cov.ratios == (Ratio(of="i1_sq", per="speed", low=pytest.approx(0.2), high=pytest.approx(0.4)),)
+    moving = np.array([[True, True, False], [True, True, False], [False, False, True]])
+    assert co_varying_pairs(FACTORS, moving) == [("i1_sq", "speed")]
+
+
+def test_check_names_factor_how_far_and_how_long():
+    cov = coverage_of([spindle_run(1000, 0.2), spindle_run(500, 0.4)], FACTORS)
+    # 3000 rpm with the current of field weakening (a fifth of the covered current per rpm) for 40 windows
+    day = spindle_run(3000, 0.04, n=200, on=(50, 90))
+    check = check_coverage(cov, day, FACTORS, {"speed": "rpm", "i1_sq": "A^2"})
+    assert check.windows_outside == 40
+    assert check.outside[50] and check.outside[89] and not check.outside[49] and not check.outside[90]
+    by = {(e.what, e.side): e for e in check.excursions}
+    speed = by[("speed", "above")]
+    assert (speed.value, speed.bound, speed.windows, speed.longest, speed.first) == (3000.0, 1000.0, 40, 40, 50)
+    ratio = by[("i1_sq per speed", "below")]
+    assert ratio.value == pytest.approx(0.04) and ratio.bound == pytest.approx(0.2)
+    text = ratio.describe(60.0)
+    assert "i1_sq per speed (ratio) below coverage: down to 0.04 A^2/rpm, 0.2x the lowest covered (0.2 A^2/rpm)" in text
+    assert "40 windows (40 min), longest stretch 40 min, first at window 51" in text
+    assert check.window_reason(60) == "speed above; i1_sq per speed below"
+    # within the margin (20 % of the range, a factor 1.2 on a ratio) nothing is flagged
+    near = check_coverage(cov, spindle_run(1150, 0.18), FACTORS)
+    assert near.windows_outside == 0 and near.excursions == ()
+
+
+def test_a_factor_the_identification_never_moved_leaves_coverage_as_soon_as_it_moves():
+    cov = coverage_of([spindle_run(1000, 0.2)], FACTORS)
+    assert cov.ranges["feed"] == (0.0, 0.0)
+    check = check_coverage(cov, feed_run(100.0), FACTORS)
+    assert [(e.what, e.side, e.windows) for e in check.excursions] == [("feed", "above", 60)]
+
+
+def small_model(coverage: Coverage | None) -> ThermalModel:
+    paths = [PathTF(axis="z", factor=f, terms=(FirstOrder(gain=-0.01, tau_s=1800.0),)) for f in FACTORS]
+    return ThermalModel(axes=("z",), factors=FACTORS, units={"speed": "rpm", "i1_sq": "A^2", "feed": "mm/min"},
+                        reference={"speed": 0.0, "i1_sq": 4.0, "feed": 0.0},
+                        paths={(p.axis, p.factor): p for p in paths}, coverage=coverage)
+
+
+def test_model_file_round_trip_and_bad_values_named_by_line_and_key(tmp_path):
+    cov = coverage_of([spindle_run(1000, 0.2), spindle_run(500, 0.4), feed_run(3000)], FACTORS, source="3 runs")
+    model = small_model(cov)
+    text = model_to_toml(model)
+    assert '"i1_sq/speed" = [' in text
+    assert load_model("m.toml", text=text) == model
+    bad = (text.replace("speed = [\n    0.0,\n    1000.0,\n]", "speed = [\n    1000.0,\n    0.0,\n]")
+           .replace('"i1_sq/speed"', '"i1_sq/spede"').replace("on_share = 0.1", "on_share = 0.0"))
+    assert bad != text
+    with pytest.raises(ModelError) as err:
+        load_model("m.toml", text=bad)
+    msg = str(err.value)
+    assert "coverage.range.speed: expected [lowest, highest] deviation" in msg and "got [1000.0, 0.0]" in msg
+    assert 'coverage.ratio.i1_sq/spede: expected a key "of/per" naming two different factors' in msg
+    assert "coverage.on_share: expected the share of its highest deviation" in msg
+    assert all(line.startswith("m.toml:") for line in msg.splitlines())
+    with pytest.raises(ModelError, match=r"coverage\.range\.torque: not a factor of this model"):
+        load_model("m.toml", text=text.replace("[coverage.range]\n", "[coverage.range]\ntorque = [0.0, 1.0]\n"))
+
+
+def test_estimate_flags_the_windows_outside_and_says_why(tmp_path):
+    cov = coverage_of([spindle_run(1000, 0.2), spindle_run(500, 0.4)], FACTORS)
+    model = small_model(cov)
+    n = 200
+    du = spindle_run(3000, 0.04, n=n, on=(50, 90))
+    rec = Recording(source="day.csv", period_s=60.0, time_s=60.0 * np.arange(1, n + 1),
+                    present=np.ones(n, dtype=bool),
+                    factors={"speed": du[0], "i1_sq": du[1] + 4.0, "feed": du[2]},
+                    displacement={"z": np.zeros(n)})
+    est = estimate(model, rec)
+    assert est.coverage is not None and est.coverage.windows_outside == 40
+    assert any(note.startswith("outside the identification's coverage: speed above coverage: up to 3000 rpm, 3x "
+                               "the highest covered (1000 rpm); 40 windows (40 min)") for note in est.notes)
+    doc = est.to_json()["coverage"]
+    assert doc["windows_outside"] == 40
+    assert {(e["what"], e["side"], e["longest_s"]) for e in doc["excursions"]} == {
+        ("speed", "above", 2400.0), ("i1_sq per speed", "below", 2400.0)}
+    csv_lines = [ln for ln in est.to_csv().splitlines() if not ln.startswith("#")]
+    head = csv_lines[0].split(",")
+    flags = [float(ln.split(",")[head.index("outside_coverage")]) for ln in csv_lines[1:]]
+    assert sum(flags) == 40 and flags[50] == 1.0 and flags[49] == 0.0
+    # a model file written before coverage existed: no check, no flag
+    assert estimate(small_model(None), rec).coverage is None
+
+
+def _record(index: int, speed: float, i1_sq: float) -> WindowRecord:
+    def stats(v: float) -> ChannelStats:
+        return ChannelStats(count=100, coverage=1.0, mean=v, mean_square=v * v, mean_abs=abs(v), min=v, max=v,
+                            saturated=0, bad=0)
+
+    device = DeviceQuality(ticks_expected=100, ticks_run=100, ticks_skipped=0, reads_ok=100, reads_failed=0,
+                           timeouts=0, off_scan_ticks=0, largest_gap_s=0.01, lateness_max_s=0.0,
+                           read_time_max_s=0.001, tick_s=0.01)
+    return WindowRecord(index=index, start_s=index * 60.0, end_s=(index + 1) * 60.0, status="good",
+                        factors=MappingProxyType({"speed": speed, "i1_sq": i1_sq, "feed": 0.0}),
+                        channels=MappingProxyType({"speed": stats(speed), "current": stats(math.sqrt(i1_sq))}),
+                        devices=MappingProxyType({"adc": device}))
+
+
+def test_live_estimator_says_which_windows_leave_coverage():
+    cov = coverage_of([spindle_run(1000, 0.2), spindle_run(500, 0.4)], FACTORS)
+    est = Estimator(small_model(cov), window_s=60.0, live=Live())
+    inside = est.update(_record(0, 800.0, 4.0 + 800.0 * 0.3))
+    outside = est.update(_record(1, 3000.0, 4.0 + 3000.0 * 0.04))
+    assert inside.outside_coverage == ""
+    assert outside.outside_coverage == "speed 3000 (above the covered 1000); i1_sq per speed 0.04 (below the covered 0.2)"
+    assert Estimator(small_model(None), window_s=60.0, live=Live()).update(
+        _record(1, 3000.0, 124.0)).outside_coverage == ""
