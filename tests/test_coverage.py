@@ -51,19 +51,24 @@ def test_check_names_factor_how_far_and_how_long():
     day = spindle_run(3000, 0.04, n=200, on=(50, 90))
     check = check_coverage(cov, day, FACTORS, {"speed": "rpm", "i1_sq": "A^2"})
     assert check.windows_outside == 40
-    assert check.outside[50] and check.outside[89] and not check.outside[49] and not check.outside[90]
+    assert check.outside[50]
+    assert check.outside[89]
+    assert not check.outside[49]
+    assert not check.outside[90]
     by = {(e.what, e.side): e for e in check.excursions}
     speed = by[("speed", "above")]
     assert (speed.value, speed.bound, speed.windows, speed.longest, speed.first) == (3000.0, 1000.0, 40, 40, 50)
     ratio = by[("i1_sq per speed", "below")]
-    assert ratio.value == pytest.approx(0.04) and ratio.bound == pytest.approx(0.2)
+    assert ratio.value == pytest.approx(0.04)
+    assert ratio.bound == pytest.approx(0.2)
     text = ratio.describe(60.0)
     assert "i1_sq per speed (ratio) below coverage: down to 0.04 A^2/rpm, 0.2x the lowest covered (0.2 A^2/rpm)" in text
     assert "40 windows (40 min), longest stretch 40 min, first at window 51" in text
     assert check.window_reason(60) == "speed above; i1_sq per speed below"
     # within the margin (20 % of the range, a factor 1.2 on a ratio) nothing is flagged
     near = check_coverage(cov, spindle_run(1150, 0.18), FACTORS)
-    assert near.windows_outside == 0 and near.excursions == ()
+    assert near.windows_outside == 0
+    assert near.excursions == ()
 
 
 def test_a_factor_the_identification_never_moved_leaves_coverage_as_soon_as_it_moves():
@@ -92,7 +97,8 @@ def test_model_file_round_trip_and_bad_values_named_by_line_and_key(tmp_path):
     with pytest.raises(ModelError) as err:
         load_model("m.toml", text=bad)
     msg = str(err.value)
-    assert "coverage.range.speed: expected [lowest, highest] deviation" in msg and "got [1000.0, 0.0]" in msg
+    assert "coverage.range.speed: expected [lowest, highest] deviation" in msg
+    assert "got [1000.0, 0.0]" in msg
     assert 'coverage.ratio.i1_sq/spede: expected a key "of/per" naming two different factors' in msg
     assert "coverage.on_share: expected the share of its highest deviation" in msg
     assert all(line.startswith("m.toml:") for line in msg.splitlines())
@@ -110,7 +116,8 @@ def test_estimate_flags_the_windows_outside_and_says_why(tmp_path):
                     factors={"speed": du[0], "i1_sq": du[1] + 4.0, "feed": du[2]},
                     displacement={"z": np.zeros(n)})
     est = estimate(model, rec)
-    assert est.coverage is not None and est.coverage.windows_outside == 40
+    assert est.coverage is not None
+    assert est.coverage.windows_outside == 40
     assert any(note.startswith("outside the identification's coverage: speed above coverage: up to 3000 rpm, 3x "
                                "the highest covered (1000 rpm); 40 windows (40 min)") for note in est.notes)
     doc = est.to_json()["coverage"]
@@ -120,7 +127,9 @@ def test_estimate_flags_the_windows_outside_and_says_why(tmp_path):
     csv_lines = [ln for ln in est.to_csv().splitlines() if not ln.startswith("#")]
     head = csv_lines[0].split(",")
     flags = [float(ln.split(",")[head.index("outside_coverage")]) for ln in csv_lines[1:]]
-    assert sum(flags) == 40 and flags[50] == 1.0 and flags[49] == 0.0
+    assert sum(flags) == 40
+    assert flags[50] == 1.0
+    assert flags[49] == 0.0
     # a model file written before coverage existed: no check, no flag
     assert estimate(small_model(None), rec).coverage is None
 

@@ -97,7 +97,8 @@ class Excursion:
         """The extreme value against the covered bound, as a multiple when that means something."""
         u = f" {self.unit}" if self.unit else ""
         if self.bound != 0 and self.value / self.bound > 0:
-            return f"{self.value:.4g}{u}, {self.value / self.bound:.2g}x the {_word(self.side)} covered ({self.bound:.4g}{u})"
+            return (f"{self.value:.4g}{u}, {self.value / self.bound:.2g}x the {_word(self.side)} covered "
+                    f"({self.bound:.4g}{u})")
         return f"{self.value:.4g}{u}, {self.side} the covered {_word(self.side)} {self.bound:.4g}{u}"
 
     def describe(self, window_s: float) -> str:

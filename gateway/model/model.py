@@ -21,8 +21,8 @@ import tomli_w
 
 from gateway.errors import ModelError
 from gateway.model import limits
-from gateway.model.discrete import Section
 from gateway.model.coverage import Coverage, coverage_to_toml, parse_coverage
+from gateway.model.discrete import Section
 from gateway.model.envelope import Envelope, envelope_to_toml, parse_envelope
 from gateway.model.inputs import DerivedInput, check_order, input_to_toml, parse_inputs
 from gateway.model.terms import TERM_KINDS, FirstOrder, SecondOrder, Term
