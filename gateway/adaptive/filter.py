@@ -55,10 +55,10 @@ class DriftSettings:
     walk_um_per_sqrt_h: float = 0.3
     offset_tau_h: float = 72.0
     #: variance scales of the filter bank (the disturbance's variances times each)
-    scales: tuple[float, ...] = tuple(8.0 ** k for k in range(-5, 3))
+    scales: tuple[float, ...] = tuple(8.0 ** k for k in range(-6, 3))
     #: variance scales of the gains' prior (production differs from the identification runs); the bank
     #: holds every pair (scale, gain scale)
-    gain_scales: tuple[float, ...] = (0.1, 1.0, 10.0, 100.0)
+    gain_scales: tuple[float, ...] = (0.01, 0.1, 1.0, 10.0, 100.0)
     #: after this many probes in a row beyond the gate on the same side, conditions changed: re-anchor
     reanchor_after: int = 2
     weight_memory_h: float = 24.0
