@@ -320,20 +320,26 @@ def export_recording(store: RecordStore, profile: Profile, out: str | Path, *, c
         raise RecordingError(f"{store.path}: no windows recorded yet: nothing to export")
     meta = {"machine": store.meta.get("machine", ""), "records": str(store.path), "windows": str(n),
             "insufficient_windows": f"{bad} (factors left empty)"}
-    names = list(_export_columns([], profile, displacement))
+    from gateway.adaptive.live import probes_by_window
+
+    probes = probes_by_window(store.path)  # [probes]: sparse columns at the windows they were applied after
+    if probes:
+        meta["probes"] = f"{len(probes)} (probe_* columns: the probe applied after that window)"
+    names = list(_export_columns([], profile, displacement, probes))
     with RecordingWriter(out, names=names, meta=meta, time_column=profile.recording.time_column) as writer:
         batch: list[WindowRecord] = []
         for r in store.windows(chunk=chunk):
             batch.append(r)
             if len(batch) == chunk:
-                writer.write(np.array([b.end_s for b in batch]), _export_columns(batch, profile, displacement))
+                writer.write(np.array([b.end_s for b in batch]), _export_columns(batch, profile, displacement, probes))
                 batch = []
         if batch:
-            writer.write(np.array([b.end_s for b in batch]), _export_columns(batch, profile, displacement))
+            writer.write(np.array([b.end_s for b in batch]), _export_columns(batch, profile, displacement, probes))
     return writer.path
 
 
-def _export_columns(records: list[WindowRecord], profile: Profile, displacement: bool) -> dict[str, np.ndarray]:
+def _export_columns(records: list[WindowRecord], profile: Profile, displacement: bool,
+                    probes: dict[int, Any] | None = None) -> dict[str, np.ndarray]:
     """The exported columns of some windows, in the file's column order."""
     cols: dict[str, np.ndarray] = {}
     for f in profile.factors:
@@ -353,4 +359,10 @@ def _export_columns(records: list[WindowRecord], profile: Profile, displacement:
     cols["q_missed_ticks"] = np.array([float(r.missed_ticks) for r in records])
     cols["q_largest_gap_s"] = np.array([r.largest_gap_s for r in records])
     cols["q_devices_in_error"] = np.array([float(len(r.devices_in_error)) for r in records])
+    if probes:  # irregular, sparse: a probe's values on the row of the window it was applied after
+        hits = [probes.get(r.index) for r in records]
+        cols["probe_seq"] = np.array([math.nan if p is None else float(p.seq) for p in hits])
+        for a in profile.axes:
+            cols[f"probe_{a}_um"] = np.array([math.nan if p is None else p.values_um.get(a, math.nan) for p in hits])
+        cols["probe_sd_um"] = np.array([math.nan if p is None else p.sd_um for p in hits])
     return cols

@@ -107,6 +107,17 @@ def test_probes_update_the_live_estimate_and_a_restart_rebuilds_it(tmp_path):
     evs, _ = events(data)
     applied = [m for _, k, n, m in evs if k == "probe" and n == "applied"]
     assert len(applied) == 3 * 7  # three axes a probe
+    # exported with the records: sparse probe_* columns, read back as probes (stamped at their window's end)
+    from gateway.adaptive.probes import read_probes
+    from gateway.records import RecordStore, export_recording
+
+    with RecordStore(data / STORE_NAME) as store:
+        exported = export_recording(store, rig.profile, tmp_path / "export.csv")
+    back = read_probes(exported)
+    assert [p.seq for p in back] == [p.seq for _, p in probes]
+    for (window, stored), read in zip(probes, back, strict=True):
+        assert read.time_s == (window + 1) * rig.profile.sampling.window_s
+        assert dict(read.values_um) == pytest.approx(dict(stored.values_um), abs=1e-12)
     # rebuilt from the store: the same estimate and band as the run had at its last window
     for a in "xyz":
         assert rebuilt.estimate_um[a] == pytest.approx(before.estimate_um[a], abs=1e-6)

@@ -279,6 +279,25 @@ class ProbedEstimator(Estimator):
         return n
 
 
+def probes_by_window(path: str | Path) -> dict[int, Probe]:
+    """The stored probes keyed by the window after which each was applied (the last of a window), read-only.
+
+    ``{}`` for a store without probes (a gateway that never had ``[probes]``); nothing is written to the file.
+    """
+    try:
+        db = sqlite3.connect(f"file:{Path(path)}?mode=ro", uri=True)
+    except sqlite3.Error:
+        return {}
+    try:
+        rows = db.execute("SELECT window, seq, time_s, sd_um, body, source FROM probes ORDER BY n").fetchall()
+    except sqlite3.Error:  # no probes table
+        return {}
+    finally:
+        db.close()
+    return {int(w): Probe(seq=int(seq), time_s=float(t), values_um=json.loads(body), sd_um=float(sd),
+                          source=str(src)) for w, seq, t, sd, body, src in rows}
+
+
 def stored_probes(path: str | Path) -> Sequence[tuple[int, Probe]]:
     """The probes stored in a record store file (for export and tests)."""
     store = ProbeStore(path)

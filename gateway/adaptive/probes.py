@@ -198,8 +198,11 @@ def read_probes(path: str | Path, *, axes: Sequence[str] = AXIS_BITS) -> list[Pr
     """Probes from a CSV file: ``time`` (seconds or ISO 8601), ``seq``, ``x_um``/``y_um``/``z_um``, ``sd_um``.
 
     One row per probe cycle; an empty cell is an axis not probed (at least one per row); ``#`` lines are
-    comments. Rows must be in time order with increasing sequence numbers. Every problem is raised as one
-    :class:`~gateway.errors.RecordingError` naming the file, line and column.
+    comments. A recording exported by ``cncgw record`` from a gateway with ``[probes]`` is read too: its
+    ``probe_seq``, ``probe_<axis>_um``, ``probe_sd_um`` columns on the rows of the windows the probes were
+    applied after (each probe then stamped with that window's end). Rows must be in time order with
+    increasing sequence numbers. Every problem is raised as one :class:`~gateway.errors.RecordingError` naming
+    the file, line and column.
     """
     from gateway.errors import RecordingError
     from gateway.recording import _csv_rows, _parse_number, _parse_time
@@ -215,6 +218,11 @@ def read_probes(path: str | Path, *, axes: Sequence[str] = AXIS_BITS) -> list[Pr
         raise RecordingError(f"{path}: no header line: expected time, seq, {', '.join(f'{a}_um' for a in axes)}, sd_um")
     line0, head = rows[0]
     names = [h.lower() for h in head]
+    # a recording exported by `cncgw record` carries its probes in sparse probe_* columns
+    pre = "probe_" if "probe_seq" in names else ""
+    if pre:
+        names = [n[len(pre):] if n.startswith(pre) else ("time" if n in ("time", "time_s") else f"-{n}")
+                 for n in names]
     need = {"time": ("time", "time_s"), "seq": ("seq",), "sd_um": ("sd_um",)}
     col: dict[str, int] = {}
     problems = []
@@ -236,6 +244,8 @@ def read_probes(path: str | Path, *, axes: Sequence[str] = AXIS_BITS) -> list[Pr
         if len(cells) < len(head):
             problems.append(f"{path}:{line}: {len(cells)} cells, expected {len(head)} (the header's)")
             continue
+        if pre and cells[col["seq"]] == "":
+            continue  # a window without a probe
 
         def cell(c: int, what: str, parse, line=line, cells=cells):
             try:
@@ -276,9 +286,13 @@ def read_probes(path: str | Path, *, axes: Sequence[str] = AXIS_BITS) -> list[Pr
 
 
 def _parse_int(cell: str) -> float:
-    if not cell.isdigit() or not cell.isascii() or int(cell) >= SEQ_MODULUS:
+    """A sequence number: 0..65535, written as an integer or as a whole float (an exported recording's 7.0)."""
+    from gateway.recording import _parse_number
+
+    v = _parse_number(cell)
+    if not (math.isfinite(v) and v == int(v) and 0 <= v < SEQ_MODULUS):
         raise ValueError(cell)
-    return float(int(cell))
+    return float(v)
 
 
 def _clip_cell(cell: str, width: int = 40) -> str:
