@@ -14,8 +14,9 @@ from threadpoolctl import threadpool_limits
 from gateway import __version__
 from gateway.errors import IdentificationError
 from gateway.identify.common import ExperimentSet
-from gateway.identify.joint import CANDIDATES, AxisSelection, select_axis
+from gateway.identify.joint import CANDIDATES, AxisProblem, AxisSelection, select_axis
 from gateway.identify.paper import active_factors, describe_groups, identify_paper
+from gateway.identify.shrink import AxisShrinkage, shrink_axis
 from gateway.model.coverage import coverage_of
 from gateway.model.envelope import envelope_of
 from gateway.model.model import ThermalModel, model_problems
@@ -23,6 +24,8 @@ from gateway.prepare import prepare
 from gateway.recording import Recording
 
 METHODS = ("joint", "paper")
+#: a pruned path comes back only when leaving experiments out predicts at least this share better with it
+UNPRUNE_GAIN = 0.05
 
 
 @dataclass(kw_only=True)
@@ -36,6 +39,8 @@ class IdentifyResult:
     report: list[str] = field(default_factory=list)
     selections: list[AxisSelection] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    #: per axis (joint method): the gain prior chosen by leaving experiments out, and each path's determination
+    shrinkage: list[AxisShrinkage] = field(default_factory=list)
 
 
 def identify(
@@ -52,6 +57,7 @@ def identify(
     paper_max_iter: int = 3000,
     progress: Callable[[str], None] | None = None,
     jobs: int = 1,
+    shrink: bool = True,
 ) -> IdentifyResult:
     """Identify a model from experiment recordings.
 
@@ -61,6 +67,10 @@ def identify(
 
     ``jobs`` > 1 (joint method): the axes are fitted in that many processes at once (forked, where the
     platform forks); the model is the same as with one. Leave it at 1 on a PC whose gateway is sampling.
+
+    ``shrink`` (joint method): gains the experiments do not determine are pulled toward zero by a prior whose
+    strength is chosen by leave-one-experiment-out prediction (:mod:`gateway.identify.shrink`); paths pruned
+    by the information criterion stay zero only if leaving experiments out predicts them no worse.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}. Got {method!r}")
@@ -69,7 +79,7 @@ def identify(
     with threadpool_limits(limits=1, user_api="blas"):
         return _identify(recordings, factors=factors, axes=axes, units=units, machine=machine, method=method,
                          candidates=candidates, prune=prune, gap_policy=gap_policy, paper_max_iter=paper_max_iter,
-                         progress=progress, jobs=jobs)
+                         progress=progress, jobs=jobs, shrink=shrink)
 
 
 def _identify(
@@ -86,6 +96,7 @@ def _identify(
     paper_max_iter: int,
     progress: Callable[[str], None] | None,
     jobs: int,
+    shrink: bool,
 ) -> IdentifyResult:
     t0 = time.perf_counter()
     notes: list[str] = []
@@ -111,6 +122,7 @@ def _identify(
 
     report: list[str] = []
     selections: list[AxisSelection] = []
+    shrinkage: list[AxisShrinkage] = []
     paths = []
     info: dict[str, object] = {
         "method": method, "experiments": list(es.names),
@@ -121,14 +133,23 @@ def _identify(
     if method == "joint":
         fit_axes = _select_axes_in_processes if jobs > 1 and len(axes) > 1 and _can_fork() else _select_axes
         for i, sel in enumerate(fit_axes(es, list(active), candidates, prune, progress, jobs)):
+            shr = None
+            if shrink:
+                if progress:
+                    progress(f"axis {axes[i]}: gain prior by leaving experiments out")
+                sel, shr = _shrink_selection(es, i, sel)
+                shrinkage.append(shr)
             selections.append(sel)
-            paths += sel.chosen.paths(factors)
+            paths += (shr.fit if shr is not None else sel.chosen).paths(factors)
             report += _axis_report(sel)
             info[f"axis_{axes[i]}"] = {
                 "structure": _structure_name(sel.chosen.structures), "rms_um": sel.chosen.rms,
                 "residual_lag1_autocorrelation": sel.rho, "effective_samples": sel.n_eff,
                 "bic": {k: f.bic for k, f in sel.tried.items()}, "pruned": list(sel.pruned),
             }
+            if shr is not None:
+                report += _shrink_report(shr, units or {})
+                info[f"axis_{axes[i]}"] |= _shrink_info(shr)
     else:
         fit = identify_paper(es, progress=progress, max_iter=paper_max_iter)
         paths = fit.paths
@@ -152,7 +173,45 @@ def _identify(
             "it (factors that always change together, one that barely moves, or units far from the usual):\n"
             + "\n".join(problems))
     return IdentifyResult(model=model, method=method, experiments=es.names, wall_s=time.perf_counter() - t0,
-                          report=report, selections=selections, notes=notes)
+                          report=report, selections=selections, notes=notes, shrinkage=shrinkage)
+
+
+def _shrink_selection(es: ExperimentSet, i: int, sel: AxisSelection) -> tuple[AxisSelection, AxisShrinkage]:
+    """The prior on the chosen fit; a pruning undone when leaving experiments out predicts better without it."""
+    problem = AxisProblem(es, i)
+    shr = shrink_axis(problem, sel.chosen, n_eff=sel.n_eff)
+    if sel.pruned:
+        name = _structure_name(sel.chosen.structures)
+        whole = sel.tried.get(name)
+        if whole is not None:
+            other = shrink_axis(problem, whole, n_eff=sel.n_eff)
+            # held-out errors of two good models differ by noise: un-pruning needs a clear gain
+            if other.loeo_sse[other.kappa] < (1.0 - UNPRUNE_GAIN) * shr.loeo_sse[shr.kappa]:
+                if not whole.sd:
+                    whole.sd = problem.uncertainties(whole, whole.n / sel.n_eff)
+                other.fit.sd = whole.sd
+                sel = replace(sel, chosen=whole, pruned=(), unpruned=sel.pruned)
+                shr = other
+    return sel, shr
+
+
+def _shrink_report(shr: AxisShrinkage, units: Mapping[str, str]) -> list[str]:
+    kappa = "none" if not math.isfinite(shr.kappa) else f"kappa {shr.kappa:g}"
+    lines = [f"    gain prior (|gain| ~ kappa x {shr.d_um:.3g} um / the factor's covered maximum): {kappa}, chosen by "
+             f"leaving each experiment out: held-out RMS {shr.loeo_rms:.3g} um (without the prior "
+             f"{shr.loeo_rms_without_prior:.3g} um)"]
+    worst = sorted(shr.held_out_rms.items(), key=lambda kv: -kv[1])[:3]
+    if worst:
+        lines.append("    predicted from the others, worst: " + ", ".join(f"{n} {v:.3g} um" for n, v in worst))
+    for p in shr.poorly_determined:
+        lines.append(f"    poorly determined: {p.line(units.get(p.factor, ''))}")
+    return lines
+
+
+def _shrink_info(shr: AxisShrinkage) -> dict[str, object]:
+    return {"gain_prior_kappa": shr.kappa if math.isfinite(shr.kappa) else "none",
+            "held_out_rms_um": shr.loeo_rms, "held_out_rms_um_without_prior": shr.loeo_rms_without_prior,
+            "poorly_determined": [f"{p.factor}: {p.why}" for p in shr.poorly_determined]}
 
 
 def _select_axes(es: ExperimentSet, active: list[bool], candidates: Sequence[str], prune: bool,
@@ -209,6 +268,9 @@ def _axis_report(sel: AxisSelection) -> list[str]:
                      f"BIC {f.bic - best:+9.1f}")
     if sel.pruned:
         lines.append(f"    zero paths after pruning (gain within 2 sd of 0): {', '.join(sel.pruned)}")
+    if sel.unpruned:
+        lines.append(f"    kept after all: {', '.join(sel.unpruned)} (the information criterion would zero them; "
+                     "leaving each experiment out predicts better with them)")
     return lines
 
 

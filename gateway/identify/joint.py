@@ -432,6 +432,8 @@ class AxisSelection:
     n_eff: float
     pruned: tuple[str, ...] = ()
     wall_s: float = 0.0
+    #: paths the information criterion pruned but leaving experiments out kept (gateway.identify.api)
+    unpruned: tuple[str, ...] = ()
 
 
 def bic(fit: AxisFit, n_eff: float) -> float:
