@@ -20,6 +20,7 @@ from gateway.errors import GatewayError, exit_codes_text
 COMMAND_MODULES = (
     "gateway.commands.profile",
     "gateway.commands.identify",
+    "gateway.commands.plan",
     "gateway.commands.estimate",
     "gateway.commands.diagnose",
     "gateway.commands.model",

@@ -1,0 +1,100 @@
+"""``cncgw plan``: proposals built from production's operating states, scenarios the simulator records, and
+the production estimate they improve."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from tests_paths import PROFILES
+
+from gateway.cli import main
+from gateway.estimate import estimate
+from gateway.identify import identify
+from gateway.profile import load_profile
+from gateway.recording import read_for_profile
+from simulators.machine import load_scenario, simulate
+from simulators.machine.run import write_run
+from simulators.machine.scenario import parse_scenario_text
+
+pytestmark = pytest.mark.numeric
+
+EXPERIMENTS = ("spindle-1000rpm", "spindle-500rpm", "spindle-400-600rpm", "feed-x-fast", "feed-x-accel",
+               "feed-y-fast", "feed-y-accel", "feed-z-fast", "feed-z-accel")
+PROFILE = PROFILES / "sim-vmc.toml"
+
+
+@pytest.fixture(scope="module")
+def planned(tmp_path_factory):
+    d = tmp_path_factory.mktemp("plan")
+    for n in EXPERIMENTS:
+        write_run(simulate(load_scenario(n)), d)
+    day = simulate(load_scenario("production-day"))
+    write_run(day, d)
+    out = d / "plan"
+    code = main(["plan", "--profile", str(PROFILE), *(str(d / f"{n}.csv") for n in EXPERIMENTS),
+                 "--production", str(d / "production-day.csv"), "-o", str(out)])
+    assert code == 0
+    return d, day, json.loads((out / "plan.json").read_text())
+
+
+def test_proposals_are_few_short_and_reach_what_production_uses(planned):
+    _, _, doc = planned
+    props = doc["proposals"]
+    assert 1 <= len(props) <= 3
+    assert all(p["hours"] <= 12.0 for p in props)
+    # the production day runs the spindle at up to 3000 rpm in field weakening; the experiments went to 1000
+    assert any("spindle_speed up to 3000 rpm" in r for p in props for r in p["reaches"])
+    assert any("spindle_i1_sq per spindle_speed down to" in r for p in props for r in p["reaches"])
+    # each proposal lowers the production estimate's uncertainty on every axis
+    for p in props:
+        for a, u in p["uncertainty_um"].items():
+            assert u["after"] < u["before"], (p["name"], a)
+    first = props[0]["uncertainty_um"]
+    assert first["z"]["after"] < 0.7 * first["z"]["before"]
+
+
+def test_scenarios_record_the_proposed_levels_on_the_simulator(planned):
+    _, _, doc = planned
+    for p in doc["proposals"]:
+        sc = parse_scenario_text(Path(p["scenario"]).read_text(), source=p["scenario"])
+        assert sc.duration_h == pytest.approx(p["hours"])
+        run = simulate(sc)
+        speed = run.factors["spindle_speed"]
+        for step in p["steps"]:
+            want = step["levels"]["spindle_speed"]
+            if want > 100:  # the spindle reaches the state's speed at some point of the recording
+                assert np.min(np.abs(speed - want)) < 0.02 * want
+            for a in ("x", "y"):
+                feed = step["levels"][f"{a}_feed"]
+                if feed > 500:  # the mean |feed| of the state, within 15 %, in the windows of that step
+                    assert np.any(np.abs(run.factors[f"{a}_feed"] - feed) < 0.15 * feed), (p["name"], a, feed)
+
+
+def test_identification_with_the_proposals_predicts_the_production_day_better(planned):
+    d, day, doc = planned
+    profile = load_profile(PROFILE)
+    exps = [read_for_profile(d / f"{n}.csv", profile) for n in EXPERIMENTS]
+    extra = [simulate(parse_scenario_text(Path(p["scenario"]).read_text())).recording() for p in doc["proposals"]]
+    truth = day.recording("true")
+    before = identify(exps, factors=profile.factor_names, axes=profile.axes).model
+    after = identify(exps + extra, factors=profile.factor_names, axes=profile.axes).model
+    e0, e1 = estimate(before, truth), estimate(after, truth)
+    worst0 = max(m.max_error_pct_of_peak for m in e0.metrics.values() if m.peak_um >= 5)
+    worst1 = max(m.max_error_pct_of_peak for m in e1.metrics.values() if m.peak_um >= 5)
+    assert worst1 < worst0
+    assert worst1 < 8.0, (worst0, worst1)
+    assert e1.coverage.windows_outside < 0.2 * e0.coverage.windows_outside
+
+
+def test_bad_arguments_are_named(planned, capsys):
+    d, _, _ = planned
+    exps = [str(d / f"{n}.csv") for n in EXPERIMENTS]
+    assert main(["plan", "--profile", str(PROFILE), *exps, "--production", str(d / "production-day.csv"),
+                 "--max-hours", "1"]) == 2
+    assert "--max-hours 1: expected more than 1.5 h" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # argparse: --production is required
+        main(["plan", "--profile", str(PROFILE), *exps])
+    assert "--production" in capsys.readouterr().err
