@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from gateway.commands._common import add_recording_options, positive_int, progress_bar, read_recordings
+from gateway.errors import UsageError
 from gateway.identify import identify
 from gateway.identify.api import identification_summary
 from gateway.identify.joint import CANDIDATES
@@ -34,6 +35,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--jobs", type=positive_int, default=1, metavar="N",
                    help="joint method: fit the axes in N processes at once (default 1; keep 1 on a PC whose "
                         "gateway is sampling)")
+    p.add_argument("--production", nargs="+", default=[], metavar="RUN",
+                   help="joint method: production runs with measured displacement, fitted with the experiments "
+                        "(each its own offset; factors referred to the experiments' rest levels)")
+    p.add_argument("--production-initial", choices=("rest", "fit"), default="rest",
+                   help="a production run starts at rest (default: after a night at rest) or warm: fit its "
+                        "initial state as free decays")
     p.add_argument("--plot", metavar="PNG", help="also draw measured vs fitted displacement of every experiment")
     add_recording_options(p)
     p.set_defaults(func=run)
@@ -53,6 +60,9 @@ def run(args: argparse.Namespace) -> int:
     profile = load_profile(args.profile)
     structures = args.structures
     recs = read_recordings(args.experiments, profile, period_s=args.period_s, require_displacement=True)
+    prod = read_recordings(args.production, profile, period_s=args.period_s, require_displacement=True)
+    if prod and args.method != "joint":
+        raise UsageError("--production: production runs join the joint method only (--method joint)")
     total = len(profile.axes) * (len(structures) if args.method == "joint" else len(profile.factors))
     update, close = progress_bar(total, f"identify ({args.method})")
     try:
@@ -60,13 +70,15 @@ def run(args: argparse.Namespace) -> int:
                           units={f.name: f.unit for f in profile.factors}, machine=profile.name,
                           method=args.method, candidates=structures, prune=not args.no_prune,
                           gap_policy=args.gap_policy, paper_max_iter=args.max_iter, jobs=args.jobs,
+                          production=prod, production_initial=args.production_initial,
                           progress=lambda m: None if "pruning" in m else update(m))
     finally:
         close()
     out = Path(args.output) if args.output else profile.model_path
     save_model(result.model, out)
     print(f"identified {len(result.model.axes)} axes x {len(result.model.factors)} factors from "
-          f"{len(recs)} experiment(s) with the {args.method} method in {result.wall_s:.1f} s")
+          f"{len(recs)} experiment(s)" + (f" and {len(prod)} production run(s)" if prod else "")
+          + f" with the {args.method} method in {result.wall_s:.1f} s")
     for line in result.notes:
         print(f"note: {line}")
     for line in result.report:
@@ -76,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     if args.plot:
         from gateway.estimate import estimate, plot_estimates
 
-        ests = [estimate(result.model, r, align="offset", gap_policy=args.gap_policy) for r in recs]
+        ests = [estimate(result.model, r, align="offset", gap_policy=args.gap_policy) for r in [*recs, *prod]]
         plot_estimates(ests, args.plot, title=f"{profile.name}: identification fit ({args.method})")
         print(f"wrote {args.plot}")
     print(f"wrote {out}")

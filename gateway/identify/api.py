@@ -24,6 +24,10 @@ from gateway.prepare import prepare
 from gateway.recording import Recording
 
 METHODS = ("joint", "paper")
+#: how a production run's initial thermal state is taken: at rest (a day after a night at rest), or fitted
+PRODUCTION_INITIAL = ("rest", "fit")
+#: a production run fitted from a warm start: free decays with these time constants (s), per run
+INITIAL_DECAYS_S = (1800.0, 3 * 3600.0, 12 * 3600.0)
 #: a pruned path comes back only when leaving experiments out predicts at least this share better with it
 UNPRUNE_GAIN = 0.05
 
@@ -58,6 +62,8 @@ def identify(
     progress: Callable[[str], None] | None = None,
     jobs: int = 1,
     shrink: bool = True,
+    production: Sequence[Recording] = (),
+    production_initial: str = "rest",
 ) -> IdentifyResult:
     """Identify a model from experiment recordings.
 
@@ -71,7 +77,18 @@ def identify(
     ``shrink`` (joint method): gains the experiments do not determine are pulled toward zero by a prior whose
     strength is chosen by leave-one-experiment-out prediction (:mod:`gateway.identify.shrink`); paths pruned
     by the information criterion stay zero only if leaving experiments out predicts them no worse.
+
+    ``production`` (joint method): production runs with measured displacement, fitted with the experiments,
+    each with its own offset. Their factors are deviations from the experiments' rest levels (the model's
+    reference), not from their own first window (a run may start mid-work); ``production_initial="fit"``
+    adds per run free decays (:data:`INITIAL_DECAYS_S`) for a run that starts warm, ``"rest"`` takes it to
+    start in equilibrium like an experiment. Coverage, envelope, the gain prior and the report cover them.
     """
+    if production and method != "joint":
+        raise IdentificationError("production runs join the joint method only: the paper's method separates "
+                                  "experiments that each change one group of factors")
+    if production_initial not in PRODUCTION_INITIAL:
+        raise ValueError(f"production_initial must be one of {PRODUCTION_INITIAL}. Got {production_initial!r}")
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}. Got {method!r}")
     # the matrices here are small (thousands x tens): BLAS threads only contend for the cores, and on a
@@ -79,7 +96,8 @@ def identify(
     with threadpool_limits(limits=1, user_api="blas"):
         return _identify(recordings, factors=factors, axes=axes, units=units, machine=machine, method=method,
                          candidates=candidates, prune=prune, gap_policy=gap_policy, paper_max_iter=paper_max_iter,
-                         progress=progress, jobs=jobs, shrink=shrink)
+                         progress=progress, jobs=jobs, shrink=shrink, production=production,
+                         production_initial=production_initial)
 
 
 def _identify(
@@ -97,6 +115,8 @@ def _identify(
     progress: Callable[[str], None] | None,
     jobs: int,
     shrink: bool,
+    production: Sequence[Recording],
+    production_initial: str,
 ) -> IdentifyResult:
     t0 = time.perf_counter()
     notes: list[str] = []
@@ -104,11 +124,25 @@ def _identify(
     for rec in recordings:
         p = prepare(rec, factors=factors, axes=axes, initial="first", gap_policy=gap_policy)
         preps.append(p)
+    # the rest levels are the experiments' (each starts in equilibrium); production runs are referred to them
+    reference = {f: float(np.mean([p.u0[j] for p in preps])) for j, f in enumerate(factors)}
+    prod_preps = [prepare(rec, factors=factors, axes=axes, initial="reference", reference=reference,
+                          gap_policy=gap_policy) for rec in production]
+    names = [p.name for p in preps]
+    for p in prod_preps:
+        if p.name in names:  # two recordings of one name would be one experiment in the report
+            p = replace(p, name=f"{p.name} (production)")
+        names.append(p.name)
+        preps.append(p)
+    for p in preps:
         notes += [f"{p.name}: {n}" for n in p.notes]
         for i, a in enumerate(axes):
             if not np.isfinite(p.y[i]).any():
                 notes.append(f"{p.name}: no measured displacement on axis {a}; it does not inform axis {a}")
+    preps = [replace(p, name=n) for p, n in zip(preps, names, strict=True)]
     es = ExperimentSet.from_prepared(preps, factors=factors, axes=axes)
+    if prod_preps and production_initial == "fit":
+        es = _with_initial_decays(es, range(len(recordings), len(preps)))
     act = active_factors(es)
     active = act.any(axis=0)
     for j, f in enumerate(factors):
@@ -125,11 +159,15 @@ def _identify(
     shrinkage: list[AxisShrinkage] = []
     paths = []
     info: dict[str, object] = {
-        "method": method, "experiments": list(es.names),
+        "method": method, "experiments": list(es.names[: len(recordings)]),
         "experiment_fingerprints": [r.fingerprint(factors) for r in recordings],
         "window_s": es.dt_s, "longest_experiment_s": es.longest_s,
         "identified_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"), "cncgw_version": __version__,
     }
+    if production:
+        info["production_runs"] = list(es.names[len(recordings):])
+        info["production_fingerprints"] = [r.fingerprint(factors) for r in production]
+        info["production_initial"] = production_initial
     if method == "joint":
         fit_axes = _select_axes_in_processes if jobs > 1 and len(axes) > 1 and _can_fork() else _select_axes
         for i, sel in enumerate(fit_axes(es, list(active), candidates, prune, progress, jobs)):
@@ -155,16 +193,16 @@ def _identify(
         paths = fit.paths
         report += describe_groups(es, fit.groups)
         report.append(f"steepest descent: {fit.evaluations} evaluations of E in {fit.wall_s:.2f} s")
-    reference = {f: float(np.mean(es.u0[:, j])) for j, f in enumerate(factors)}
     # the deviations the experiments covered: beyond them the model extrapolates (estimate warns)
     info["deviation_range"] = {f: [float(es.du[j].min()), float(es.du[j].max())] for j, f in enumerate(factors)}
     model = ThermalModel(axes=tuple(axes), factors=tuple(factors), units=dict(units or {}), reference=reference,
                          paths={(p.axis, p.factor): p for p in paths}, machine=machine, info=info)
     # what these experiments support: the live gateway holds the offsets beyond it (gateway.live.plausibility)
+    what = f"{len(recordings)} experiments" + (f" and {len(production)} production runs" if production else "")
     envelope = envelope_of(model, ((p.du, p.y) for p in preps), window_s=es.dt_s,
-                           source=f"identification: {len(preps)} experiments")
+                           source=f"identification: {what}")
     # where in factor space the model was fitted: estimate, run and diagnose say when a recording leaves it
-    coverage = coverage_of((p.du for p in preps), factors, source=f"identification: {len(preps)} recordings")
+    coverage = coverage_of((p.du for p in preps), factors, source=f"identification: {what}")
     model = replace(model, envelope=envelope, coverage=coverage)
     problems = model_problems(model)
     if problems:  # e.g. a factor that barely moves in the experiments: a gain of millions of um per unit
@@ -174,6 +212,20 @@ def _identify(
             + "\n".join(problems))
     return IdentifyResult(model=model, method=method, experiments=es.names, wall_s=time.perf_counter() - t0,
                           report=report, selections=selections, notes=notes, shrinkage=shrinkage)
+
+
+def _with_initial_decays(es: ExperimentSet, runs: Sequence[int]) -> ExperimentSet:
+    """``es`` with free decays (:data:`INITIAL_DECAYS_S`) on each of ``runs``: a warm start's unknown state."""
+    cols, names = [], []
+    t = es.dt_s * np.arange(es.du.shape[2])
+    for e in runs:
+        for tau in INITIAL_DECAYS_S:
+            c = np.zeros(es.du.shape[1:])
+            c[e, : es.lengths[e]] = np.exp(-t[: es.lengths[e]] / tau)
+            cols.append(c)
+            names.append(f"{es.names[e]}: initial decay {tau / 3600:g} h")
+    extra = np.stack(cols) if es.extra is None else np.concatenate([es.extra, np.stack(cols)])
+    return replace(es, extra=extra, extra_names=(*es.extra_names, *names))
 
 
 def _shrink_selection(es: ExperimentSet, i: int, sel: AxisSelection) -> tuple[AxisSelection, AxisShrinkage]:
