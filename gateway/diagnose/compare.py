@@ -124,7 +124,7 @@ def compare(stack: Stack, model: ThermalModel, block: np.ndarray, accepted: Sequ
                         e = t.evidence.get(a)
                         if e is not None and e.included and e.setting is not None:
                             cols += [c[rows] for c in setting_columns(stack, e.setting)[0]]
-            p, _ = held_out(target, folds[rows], cols, zeros=zeros)
+            p = held_out(target, folds[rows], cols, zeros=zeros)
             err = target - p
             sc = score[rows]
             for f in range(k):

@@ -346,8 +346,8 @@ def jackknife_sd(values: np.ndarray) -> np.ndarray:
 
 
 def held_out(target: np.ndarray, block: np.ndarray, columns: Sequence[np.ndarray], *,
-             zeros: Sequence[tuple[int, np.ndarray]] = ()) -> tuple[np.ndarray, np.ndarray]:
-    """(predictions of ``target`` on each held-out block from the other blocks, held-out SSE per block).
+             zeros: Sequence[tuple[int, np.ndarray]] = ()) -> np.ndarray:
+    """Predictions of ``target`` on each held-out block from a fit on the other blocks (NaN elsewhere).
 
     ``columns`` are the regressors whose gains every fold refits; burn-in rows always train and get NaN.
     ``zeros``: per recording, (index in ``columns`` of its offset column, the windows its zero is taken from:
@@ -369,5 +369,4 @@ def held_out(target: np.ndarray, block: np.ndarray, columns: Sequence[np.ndarray
                 full[member] = shape[member] + float(np.mean(target[first] - shape[first]))
         rows = block == f
         pred[rows] = full[rows]
-    sse = np.array([float(np.sum((target[block == f] - pred[block == f]) ** 2)) for f in range(fold.k)])
-    return pred, sse
+    return pred
