@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -135,6 +135,19 @@ class SearchResult:
     sse_rounds: dict[str, list[float]] = field(default_factory=dict)
 
 
+def without_path_corrections(h: Hypothesis) -> Hypothesis:
+    """``h`` without the components that only rescale an identified path (``Component.corrects``)."""
+    def strip(s: Setting) -> Setting:
+        keep = [k for k, c in enumerate(s.components) if not c.corrects]
+        if len(keep) == len(s.components):
+            return s
+        return replace(s, components=tuple(s.components[k] for k in keep),
+                       signs=tuple(s.signs[k] for k in keep if k < len(s.signs)),
+                       limits=tuple(s.limits[k] for k in keep if k < len(s.limits)))
+
+    return replace(h, settings={a: [strip(s) for s in grid] for a, grid in h.settings.items()})
+
+
 def setting_columns(stack: Stack, setting: Setting) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """(physics columns, nuisance columns) of a setting, over every window of the stack."""
     phys = [stack.column(c, setting.chain) for c in setting.components]
@@ -188,8 +201,11 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
 
     ``corrections``: columns (every window of the stack) whose gains every fit carries beside the
     hypothesis, in and out of it alike: the model's paths refitted (see :func:`path_corrections`), so a
-    hypothesis is judged by what it adds to a re-identified model.
+    hypothesis is judged by what it adds to a re-identified model. Its own "gain correction" of a path
+    is then dropped: the corrections span it, and two collinear columns make neither gain meaningful.
     """
+    if corrections:
+        hypotheses = [without_path_corrections(h) for h in hypotheses]
     axes: list[_Axis] = []
     offsets = stack.per_recording()
     # relevance is judged against the machine's thermal displacement, the largest peak of any axis: an
@@ -198,8 +214,10 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
     for i in range(len(stack.axes)):
         ok = np.isfinite(stack.y[i])
         if ok.any():
+            # the machine's, not the model's: an unfit model that predicts ten times what was measured must
+            # not raise the bar for what is relevant
             meas = stack.y[i][ok] - np.median(stack.y[i][ok][:10])
-            peaks.append(float(np.max(np.abs(np.concatenate([meas, stack.base[i][ok]])))))
+            peaks.append(float(np.max(np.abs(meas))))
     relevance = max(options.min_effect_share * max(peaks, default=0.0), options.min_effect_um)
     for i, name in enumerate(stack.axes):
         ok = (block != -1) & np.isfinite(stack.y[i])
