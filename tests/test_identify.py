@@ -191,3 +191,18 @@ def test_factor_never_excited_gets_a_zero_path_and_a_note():
     res = identify(recs, factors=F, axes=("x", "z"))
     assert res.model.path("x", "x_feed").kind == "zero"
     assert any("factor x_feed does not change in any experiment" in n for n in res.notes)
+
+
+def test_a_second_order_at_the_fast_time_constant_floor_loads_again():
+    """A second order is stored as (zeta, omega); its fast time constant, clamped to the 1 s floor, must come
+    back from them at or above the floor (it came back an ulp below and identify refused its own model)."""
+    import math
+
+    from gateway.identify.common import terms_with_gains
+    from gateway.model.model import model_problems
+
+    for slow in (2.0013127325811224, 15.000330627319737, 124.9, 3600.0):
+        terms = terms_with_gains("second_order", [math.log(slow), math.log(slow / 0.3)], [0.01])
+        model = ThermalModel(axes=("x",), factors=("speed",), units={}, reference={},
+                             paths={("x", "speed"): PathTF(axis="x", factor="speed", terms=terms)})
+        assert model_problems(model) == [], slow

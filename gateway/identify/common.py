@@ -129,7 +129,9 @@ def fast_time_constant(theta: Sequence[float]) -> float:
     Never below what a model file may hold: a mode that fast is static at any window length anyway, and a
     fit must be a model that loads again.
     """
-    return max(math.exp(theta[0] - theta[1]), limits.TAU_MIN_S)
+    # a hair above the floor: a second order is stored as (zeta, omega), and the time constants computed back
+    # from them may land an ulp below 1 s, which the loader refuses
+    return max(math.exp(theta[0] - theta[1]), limits.TAU_MIN_S * (1.0 + 1e-9))
 
 
 def unit_terms(structure: str, theta: Sequence[float]) -> list[Term]:
