@@ -3,7 +3,7 @@
     .venv/bin/python bench/mqtt.py [--gateways 200] [--speedup 60] [--minutes 30] [--outage-min 10]
                                    [--workers 2] [--broker mosquitto]
 
-Each simulated gateway is the real publish path: an :class:`gateway.outputs.mqtt.MqttOutput` with its own
+Each simulated gateway is the real publish path: an :class:`gateway.live.outputs.mqtt.MqttOutput` with its own
 outbox (SQLite, one synchronous commit a window) and its own paho client, handed the bundled simulated
 machine's window snapshot (9 factors, 3 axes) at the end of every window of an accelerated clock (``--speedup``
 60: a one-minute window every wall second). The gateways run in ``--workers`` processes; the broker is
@@ -43,8 +43,9 @@ from types import MappingProxyType
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from gateway.outputs import WindowSnapshot  # noqa: E402
-from gateway.outputs.mqtt import Mqtt, MqttOutput, describe_payload_sizes  # noqa: E402
+from gateway.live.outputs import WindowSnapshot  # noqa: E402
+from gateway.live.outputs.mqtt import MqttOutput, describe_payload_sizes  # noqa: E402
+from gateway.profile.mqtt import Mqtt  # noqa: E402
 
 WINDOW_S = 60.0
 PROFILE = ROOT / "profiles" / "sim-vmc.toml"

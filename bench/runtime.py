@@ -39,9 +39,9 @@ sys.path.insert(0, str(ROOT))
 from gateway.clock import ScaledClock  # noqa: E402
 from gateway.live.estimator import Estimator  # noqa: E402
 from gateway.live.runtime import LiveGateway  # noqa: E402
-from gateway.live.settings import Live  # noqa: E402
 from gateway.model import load_model  # noqa: E402
 from gateway.profile import load_profile  # noqa: E402
+from gateway.profile.live import Live  # noqa: E402
 from gateway.records import STORE_NAME, RecordStore  # noqa: E402
 from gateway.windows import WindowRecord  # noqa: E402
 

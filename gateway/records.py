@@ -26,13 +26,14 @@ import os
 import sqlite3
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
+from gateway.adaptive.probes import Probe
 from gateway.errors import RecordingError
 from gateway.profile import Profile
 from gateway.recording import RecordingWriter
@@ -320,8 +321,6 @@ def export_recording(store: RecordStore, profile: Profile, out: str | Path, *, c
         raise RecordingError(f"{store.path}: no windows recorded yet: nothing to export")
     meta = {"machine": store.meta.get("machine", ""), "records": str(store.path), "windows": str(n),
             "insufficient_windows": f"{bad} (factors left empty)"}
-    from gateway.adaptive.live import probes_by_window
-
     probes = probes_by_window(store.path)  # [probes]: sparse columns at the windows they were applied after
     if probes:
         meta["probes"] = f"{len(probes)} (probe_* columns: the probe applied after that window)"
@@ -366,3 +365,89 @@ def _export_columns(records: list[WindowRecord], profile: Profile, displacement:
             cols[f"probe_{a}_um"] = np.array([math.nan if p is None else p.values_um.get(a, math.nan) for p in hits])
         cols["probe_sd_um"] = np.array([math.nan if p is None else p.sd_um for p in hits])
     return cols
+
+
+# -- probes ([probes]): stored in the same file, beside the windows they were applied after ------------
+_PROBES_SCHEMA = """
+CREATE TABLE IF NOT EXISTS probes (
+    n INTEGER PRIMARY KEY AUTOINCREMENT,
+    window INTEGER NOT NULL,
+    seq INTEGER NOT NULL,
+    time_s REAL NOT NULL,
+    sd_um REAL NOT NULL,
+    body TEXT NOT NULL,
+    source TEXT NOT NULL
+);
+"""
+
+
+class ProbeStore:
+    """The probes applied (or refused for their values) live, in the record store's file: append-only."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._lock = threading.Lock()
+        self._db: sqlite3.Connection | None = sqlite3.connect(self.path, check_same_thread=False, timeout=10.0)
+        self._db.execute("PRAGMA synchronous=FULL")
+        with self._db:
+            self._db.executescript(_PROBES_SCHEMA)
+
+    def append(self, probe: Probe, window: int) -> None:
+        """Commit ``probe`` as applied after ``window`` (raises :class:`RecordingError` when it cannot)."""
+        body = json.dumps(dict(probe.values_um))
+        with self._lock:
+            if self._db is None:
+                raise RecordingError(f"{self.path}: the probe store is closed")
+            try:
+                with self._db:
+                    self._db.execute("INSERT INTO probes (window, seq, time_s, sd_um, body, source) "
+                                     "VALUES (?, ?, ?, ?, ?, ?)",
+                                     (window, probe.seq, probe.time_s, probe.sd_um, body, probe.source))
+            except sqlite3.Error as exc:
+                raise RecordingError(f"{self.path}: probe {probe.seq} could not be stored: {exc}") from exc
+
+    def probes(self, *, since_window: int | None = None) -> list[tuple[int, Probe]]:
+        """``(window, probe)`` in the order they were applied."""
+        with self._lock:
+            if self._db is None:
+                return []
+            rows = self._db.execute("SELECT window, seq, time_s, sd_um, body, source FROM probes WHERE window >= ? "
+                                    "ORDER BY n", (-(2**62) if since_window is None else since_window,)).fetchall()
+        return [(int(w), Probe(seq=int(seq), time_s=float(t), values_um=json.loads(body), sd_um=float(sd),
+                               source=str(src))) for w, seq, t, sd, body, src in rows]
+
+    def close(self) -> None:
+        with self._lock:
+            if self._db is not None:
+                self._db.close()
+                self._db = None
+
+
+def probes_by_window(path: str | Path) -> dict[int, Probe]:
+    """The stored probes keyed by the window after which each was applied (the last of a window), read-only.
+
+    ``{}`` for a store without probes (a gateway that never had ``[probes]``); nothing is written to the file.
+    """
+    try:
+        db = sqlite3.connect(f"file:{Path(path)}?mode=ro", uri=True)
+    except sqlite3.Error:
+        return {}
+    try:
+        rows = db.execute("SELECT window, seq, time_s, sd_um, body, source FROM probes ORDER BY n").fetchall()
+    except sqlite3.Error:  # no probes table
+        return {}
+    finally:
+        db.close()
+    return {int(w): Probe(seq=int(seq), time_s=float(t), values_um=json.loads(body), sd_um=float(sd),
+                          source=str(src)) for w, seq, t, sd, body, src in rows}
+
+
+def stored_probes(path: str | Path) -> Sequence[tuple[int, Probe]]:
+    """The probes stored in a record store file (for export and tests)."""
+    store = ProbeStore(path)
+    try:
+        return store.probes()
+    finally:
+        store.close()
+
+

@@ -22,8 +22,8 @@ from gateway.commands._common import load_model_for
 from gateway.estimate import estimate
 from gateway.identify import identify
 from gateway.live.plausibility import Plausibility
-from gateway.live.settings import Compensation, default_axes
 from gateway.profile import load_profile
+from gateway.profile.live import Compensation, default_axes
 from simulators.machine import load_scenario, simulate
 
 pytestmark = pytest.mark.numeric

@@ -16,11 +16,11 @@ import pytest
 from test_sim_devices_support import WaveSource
 
 from gateway.clock import ManualClock
-from gateway.compensation import CompensationWriter
 from gateway.live.audit import AuditLog
+from gateway.live.compensation import CompensationWriter
 from gateway.live.estimator import EstimateUpdate
 from gateway.live.plausibility import AxisBound, Plausibility
-from gateway.live.settings import Compensation, default_axes
+from gateway.profile.live import Compensation, default_axes
 from simulators.devices import CompensationConfig, DeviceSet, DeviceSetConfig
 
 ONLY_CNC = {"adc_tcp_port": None, "adc_rtu": None, "can": None, "dcon": None}

@@ -12,10 +12,10 @@ import pytest
 from gateway.errors import ModelError
 from gateway.estimate import estimate
 from gateway.live.estimator import Estimator
-from gateway.live.settings import Live
 from gateway.model import PathTF, ThermalModel, load_model, model_to_toml
 from gateway.model.coverage import Coverage, Ratio, check_coverage, co_varying_pairs, coverage_of
 from gateway.model.terms import FirstOrder
+from gateway.profile.live import Live
 from gateway.recording import Recording
 from gateway.windows import ChannelStats, DeviceQuality, WindowRecord
 

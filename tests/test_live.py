@@ -20,9 +20,9 @@ from gateway.clock import ManualClock
 from gateway.commands._common import load_model_for
 from gateway.live.audit import AUDIT_NAME, AuditLog
 from gateway.live.runtime import LiveGateway
-from gateway.live.simulated import closed_loop_errors, live_profile
 from gateway.profile import load_profile
 from gateway.records import STORE_NAME, RecordStore
+from simulators.closed_loop import closed_loop_errors, live_profile
 from simulators.devices import DeviceSetConfig, serve
 from simulators.machine import LiveMachine
 

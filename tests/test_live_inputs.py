@@ -11,11 +11,11 @@ import pytest
 
 from gateway.errors import ModelError
 from gateway.live.estimator import Estimator
-from gateway.live.settings import Live
 from gateway.model import LiveEstimator, PathTF, ThermalModel
 from gateway.model.inputs import Column, Periodic, Product
 from gateway.model.terms import FirstOrder
 from gateway.profile import load_profile
+from gateway.profile.live import Live
 from gateway.recording import read_for_profile
 from gateway.records import STORE_NAME, RecordStore, export_recording
 from gateway.windows import ChannelStats, DeviceQuality, WindowRecord

@@ -14,14 +14,13 @@ import pytest
 import tomli_w
 from tests_paths import ROOT
 
-from gateway.adaptive.live import stored_probes
 from gateway.clock import ManualClock
 from gateway.commands._common import load_model_for
 from gateway.live.audit import AUDIT_NAME, AuditLog
 from gateway.live.runtime import LiveGateway
-from gateway.live.simulated import live_profile
 from gateway.profile import load_profile
-from gateway.records import STORE_NAME
+from gateway.records import STORE_NAME, stored_probes
+from simulators.closed_loop import live_profile
 from simulators.devices import DeviceSetConfig, serve
 from simulators.devices.cnc import CompensationConfig, ProbeCycles
 from simulators.machine import LiveMachine
@@ -192,8 +191,8 @@ def test_compensation_holds_while_the_band_is_wider_than_the_limit(tmp_path):
 
 
 def test_the_mqtt_estimate_carries_the_band():
-    from gateway.outputs import WindowSnapshot
-    from gateway.outputs.payloads import window_payloads
+    from gateway.live.outputs import WindowSnapshot
+    from gateway.live.outputs.payloads import window_payloads
 
     snap = WindowSnapshot(machine="m", window=7, end_s=480.0, status="good", coverage=1.0, samples_taken=10,
                           samples_expected=10, missed_ticks=0, estimate_um={"z": -12.5}, usable=True,

@@ -18,8 +18,8 @@ import time
 
 from gateway.clock import ScaledClock
 from gateway.live.audit import AUDIT_NAME, AuditLog
-from gateway.live.simulated import live_profile
 from gateway.records import STORE_NAME, RecordStore
+from simulators.closed_loop import live_profile
 from simulators.devices import CompensationConfig, DeviceSetConfig, serve
 from simulators.machine import LiveMachine
 

@@ -19,10 +19,10 @@ from test_live import MAX_STEP_UM, Rig, audited
 from gateway.cli import main
 from gateway.live.estimator import Estimator
 from gateway.live.plausibility import ABS_FACTOR, ABS_MARGIN_UM, Plausibility
-from gateway.live.settings import Compensation, default_axes
 from gateway.model import FirstOrder, save_model
 from gateway.model.envelope import Envelope
 from gateway.profile import load_profile
+from gateway.profile.live import Compensation, default_axes
 from gateway.records import STORE_NAME, RecordStore
 
 
@@ -262,7 +262,7 @@ def test_a_restart_beats_before_it_replays_the_history_and_run_imports_no_identi
         rig.close()
     # `cncgw run` builds its own parser only: identification's scipy is not imported before the first beat
     code = ("import sys; from gateway.cli import build_parser; build_parser('run'); "
-            "import gateway.commands.run, gateway.live.runtime, gateway.compensation; "
+            "import gateway.commands.run, gateway.live.runtime, gateway.live.compensation; "
             "print(sorted(m for m in ('scipy', 'gateway.identify', 'asyncua') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"

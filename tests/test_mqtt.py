@@ -12,10 +12,11 @@ import pytest
 from tests_paths import PROFILES
 
 from gateway.errors import ProfileError
-from gateway.outputs import WindowSnapshot
-from gateway.outputs.mqtt import Mqtt, MqttOutput
-from gateway.outputs.outbox import OUTBOX_NAME, Outbox
+from gateway.live.outputs import WindowSnapshot
+from gateway.live.outputs.mqtt import MqttOutput
+from gateway.live.outputs.outbox import OUTBOX_NAME, Outbox
 from gateway.profile import load_profile
+from gateway.profile.mqtt import Mqtt
 from simulators.mqtt_broker import LocalBroker
 
 WINDOW_S = 60.0
@@ -192,7 +193,7 @@ def test_the_live_gateway_publishes_every_window_beside_opc_ua(broker, tmp_path)
     from gateway.clock import ManualClock
     from gateway.commands._common import load_model_for
     from gateway.live.runtime import LiveGateway
-    from gateway.live.simulated import live_profile
+    from simulators.closed_loop import live_profile
     from simulators.devices import DeviceSetConfig, serve
     from simulators.machine import LiveMachine
 

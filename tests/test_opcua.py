@@ -15,10 +15,10 @@ import threading
 import pytest
 from tests_paths import PROFILES
 
-from gateway.live.settings import OpcUa
+from gateway.live.opcua_server import OpcUaServer
 from gateway.model import load_model
-from gateway.opcua import OpcUaServer
 from gateway.profile import load_profile
+from gateway.profile.live import OpcUa
 
 HEALTH = {
     "factors": {"spindle_speed": 1000.0, "z_i_sq": 13.3},

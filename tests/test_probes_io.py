@@ -9,7 +9,7 @@ from gateway.adaptive.probes import PROBE_BLOCK_WORDS, decode_probe_block, encod
 from gateway.clock import ManualClock
 from gateway.errors import RecordingError
 from gateway.live.cnc import CncLink
-from gateway.live.settings import Compensation, default_axes
+from gateway.profile.live import Compensation, default_axes
 from simulators.devices import DeviceSet, DeviceSetConfig
 from simulators.devices.cnc import CompensationConfig, ProbeCycles
 from simulators.machine.live import LiveMachine

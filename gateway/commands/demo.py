@@ -108,7 +108,7 @@ INVALID_SHARE = 0.01
 def _live(args: argparse.Namespace, out: Path, model: object) -> int:
     from gateway.clock import Clock, ManualClock, ScaledClock
     from gateway.live.runtime import LiveGateway
-    from gateway.live.simulated import closed_loop_errors, live_profile, plot_closed_loop
+    from simulators.closed_loop import closed_loop_errors, live_profile, plot_closed_loop
     from simulators.devices import DeviceSetConfig, serve
     from simulators.devices.cnc import CompensationConfig
     from simulators.machine import LiveMachine

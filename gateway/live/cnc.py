@@ -20,7 +20,7 @@ from drivers.modbus_common import RegisterAddress
 from drivers.modbus_tcp import ModbusTcpDriver, ModbusTcpOptions
 from gateway.clock import Clock
 from gateway.errors import CompensationError, DeviceTimeout, DriverError
-from gateway.live.settings import Compensation
+from gateway.profile.live import Compensation
 
 ACTIVE, WATCHDOG_TRIPPED, RAMPING, LAST_WRITE_REJECTED, HEARTBEAT_OK = (1 << i for i in range(5))
 _EXCEPTIONS = {1: "illegal function", 2: "illegal data address", 3: "illegal data value", 4: "device failure",

@@ -40,10 +40,10 @@ from typing import Any
 import numpy as np
 
 from gateway.errors import ModelError
-from gateway.live.settings import Live
 from gateway.model import LiveEstimator, ThermalModel
 from gateway.model.coverage import check_coverage
 from gateway.model.inputs import Column, InputStepper, Product, initial_values
+from gateway.profile.live import Live
 from gateway.windows import WindowRecord
 
 log = logging.getLogger(__name__)

@@ -40,8 +40,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from gateway.live.settings import Compensation
 from gateway.model import ThermalModel
+from gateway.profile.live import Compensation
 
 ABS_FACTOR = 1.5
 ABS_MARGIN_UM = 5.0

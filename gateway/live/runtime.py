@@ -31,15 +31,15 @@ from typing import Any
 
 from drivers.base import Driver
 from gateway.clock import Clock, ManualClock
-from gateway.compensation import CompensationWriter
 from gateway.errors import ModelError, ProfileError
 from gateway.live.audit import AUDIT_NAME, Alarms, AuditLog
 from gateway.live.cnc import CncLink
+from gateway.live.compensation import CompensationWriter
 from gateway.live.estimator import EstimateUpdate, Estimator, history_windows, retention_problems
 from gateway.live.plausibility import Plausibility, model_refusals
 from gateway.model import ThermalModel
 from gateway.profile import Profile
-from gateway.records import STORE_NAME, RecordStore, private_dir
+from gateway.records import STORE_NAME, ProbeStore, RecordStore, private_dir
 from gateway.windows import WindowRecord
 
 log = logging.getLogger("gateway.live")
@@ -88,8 +88,8 @@ class LiveGateway:
         self.plausibility: Plausibility | None = None
         self.opcua: Any = None
         self.acquisition: Any = None
-        self.outputs: list[Any] = []  # outputs beside OPC UA (gateway.outputs): MQTT
-        self.probes: Any = None  # the CNC's probe block reader ([probes], gateway.adaptive.live)
+        self.outputs: list[Any] = []  # outputs beside OPC UA (gateway.live.outputs): MQTT
+        self.probes: Any = None  # the CNC's probe block reader ([probes], gateway.live.probes)
         self.probe_store: Any = None
         self.started_wall: float | None = None
         self.started_s: float | None = None
@@ -157,7 +157,7 @@ class LiveGateway:
                                           "channels": {f.name: f.channel for f in p.factors},
                                           "channel_names": [c.name for c in p.channels]}
         if p.probes.enabled:  # the model updated by the CNC's probes (gateway.adaptive)
-            from gateway.adaptive.live import ProbedEstimator, ProbeReader, ProbeStore
+            from gateway.live.probes import ProbedEstimator, ProbeReader
 
             self.probe_store = ProbeStore(self.data_dir / STORE_NAME)
             self.probes = ProbeReader(p.probes, clock=self.clock, audit=self.audit, link_factory=lambda: CncLink(
@@ -180,14 +180,14 @@ class LiveGateway:
             self.audit.event(now, "rebuild", "estimator", f"{n} windows replayed up to window {self.store.last_index}")
 
         if self.serve_opcua:
-            from gateway.opcua import OpcUaServer
+            from gateway.live.opcua_server import OpcUaServer
 
             self.opcua = OpcUaServer(p.opcua, profile=p, model=self.model,
                                      on_hold=self.writer.request_hold if p.opcua.writable else None)
             self.opcua.start()
 
         if p.mqtt.enabled:
-            from gateway.outputs.mqtt import MqttOutput
+            from gateway.live.outputs.mqtt import MqttOutput
 
             self.outputs.append(MqttOutput(p.mqtt, machine=p.name, data_dir=self.data_dir,
                                            window_s=p.sampling.window_s, store=self.store, profile=p,
@@ -321,7 +321,7 @@ class LiveGateway:
         self._note_coverage(record, update)
         self._publish_health(record, update)
         if self.outputs:
-            from gateway.outputs import snapshot
+            from gateway.live.outputs import snapshot
 
             snap = snapshot(self, record, update)
             for output in self.outputs:

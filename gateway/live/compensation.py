@@ -55,7 +55,7 @@ from gateway.live.audit import Alarms, AuditLog, WriteEntry
 from gateway.live.cnc import CncLink, CncRejected, CncState
 from gateway.live.estimator import EstimateUpdate
 from gateway.live.plausibility import Plausibility
-from gateway.live.settings import Compensation
+from gateway.profile.live import Compensation
 
 log = logging.getLogger(__name__)
 

@@ -17,8 +17,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from gateway.adaptive.filter import DriftSettings
-
 
 @dataclass(frozen=True, kw_only=True, slots=True)
 class Probes:
@@ -31,10 +29,6 @@ class Probes:
     poll_s: float = 1.0
     band_limit_um: float | None = None
     gate_sigma: float = 3.0
-
-    def drift(self) -> DriftSettings:
-        """The update's settings (the defaults of :class:`DriftSettings` but the gate)."""
-        return DriftSettings(gate_sigma=self.gate_sigma)
 
 
 def parse_probes(root: Any) -> Probes:

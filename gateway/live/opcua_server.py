@@ -42,9 +42,9 @@ from collections.abc import Callable
 from typing import Any
 
 from gateway.errors import GatewayError
-from gateway.live.settings import OpcUa
 from gateway.model import ThermalModel
 from gateway.profile import Profile
+from gateway.profile.live import OpcUa
 
 log = logging.getLogger(__name__)
 

@@ -20,7 +20,7 @@ import json
 import math
 from typing import Any
 
-from gateway.outputs import Quality, Value, WindowSnapshot
+from gateway.live.outputs import Quality, Value, WindowSnapshot
 
 SCHEMA = "cncgw.window/1"
 KINDS = ("estimate", "offsets", "factors", "health")

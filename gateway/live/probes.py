@@ -21,83 +21,27 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import math
-import sqlite3
 import threading
 from collections import deque
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import replace
-from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
-from gateway.adaptive.filter import Z95, AdaptiveEstimator
+from gateway.adaptive.filter import Z95, AdaptiveEstimator, DriftSettings
 from gateway.adaptive.probes import PROBE_BLOCK_WORDS, Probe, ProbeDecision, decode_probe_block
-from gateway.adaptive.settings import Probes
 from gateway.clock import Clock
 from gateway.errors import CompensationError, DriverError, RecordingError
 from gateway.live.estimator import EstimateUpdate, Estimator
+from gateway.profile.probes import Probes
+from gateway.records import ProbeStore
 from gateway.windows import WindowRecord
 
 log = logging.getLogger("gateway.live.probes")
-
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS probes (
-    n INTEGER PRIMARY KEY AUTOINCREMENT,
-    window INTEGER NOT NULL,
-    seq INTEGER NOT NULL,
-    time_s REAL NOT NULL,
-    sd_um REAL NOT NULL,
-    body TEXT NOT NULL,
-    source TEXT NOT NULL
-);
-"""
-
-
-class ProbeStore:
-    """The probes applied (or refused for their values) live, in the record store's file: append-only."""
-
-    def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
-        self._lock = threading.Lock()
-        self._db: sqlite3.Connection | None = sqlite3.connect(self.path, check_same_thread=False, timeout=10.0)
-        self._db.execute("PRAGMA synchronous=FULL")
-        with self._db:
-            self._db.executescript(_SCHEMA)
-
-    def append(self, probe: Probe, window: int) -> None:
-        """Commit ``probe`` as applied after ``window`` (raises :class:`RecordingError` when it cannot)."""
-        body = json.dumps(dict(probe.values_um))
-        with self._lock:
-            if self._db is None:
-                raise RecordingError(f"{self.path}: the probe store is closed")
-            try:
-                with self._db:
-                    self._db.execute("INSERT INTO probes (window, seq, time_s, sd_um, body, source) "
-                                     "VALUES (?, ?, ?, ?, ?, ?)",
-                                     (window, probe.seq, probe.time_s, probe.sd_um, body, probe.source))
-            except sqlite3.Error as exc:
-                raise RecordingError(f"{self.path}: probe {probe.seq} could not be stored: {exc}") from exc
-
-    def probes(self, *, since_window: int | None = None) -> list[tuple[int, Probe]]:
-        """``(window, probe)`` in the order they were applied."""
-        with self._lock:
-            if self._db is None:
-                return []
-            rows = self._db.execute("SELECT window, seq, time_s, sd_um, body, source FROM probes WHERE window >= ? "
-                                    "ORDER BY n", (-(2**62) if since_window is None else since_window,)).fetchall()
-        return [(int(w), Probe(seq=int(seq), time_s=float(t), values_um=json.loads(body), sd_um=float(sd),
-                               source=str(src))) for w, seq, t, sd, body, src in rows]
-
-    def close(self) -> None:
-        with self._lock:
-            if self._db is not None:
-                self._db.close()
-                self._db = None
 
 
 class ProbeReader:
@@ -200,7 +144,8 @@ class ProbedEstimator(Estimator):
                  clock: Clock | None = None, **kw: Any) -> None:
         super().__init__(model, **kw)
         self.probe_settings = probes
-        self.adaptive = AdaptiveEstimator(model, window_s=self.window_s, settings=probes.drift())
+        self.adaptive = AdaptiveEstimator(model, window_s=self.window_s,
+                                          settings=DriftSettings(gate_sigma=probes.gate_sigma))
         self.probe_store = store
         self.source = source
         self.audit = audit
@@ -277,34 +222,6 @@ class ProbedEstimator(Estimator):
         if n and self.last is not None:
             self.last = self._updated(self.last)
         return n
-
-
-def probes_by_window(path: str | Path) -> dict[int, Probe]:
-    """The stored probes keyed by the window after which each was applied (the last of a window), read-only.
-
-    ``{}`` for a store without probes (a gateway that never had ``[probes]``); nothing is written to the file.
-    """
-    try:
-        db = sqlite3.connect(f"file:{Path(path)}?mode=ro", uri=True)
-    except sqlite3.Error:
-        return {}
-    try:
-        rows = db.execute("SELECT window, seq, time_s, sd_um, body, source FROM probes ORDER BY n").fetchall()
-    except sqlite3.Error:  # no probes table
-        return {}
-    finally:
-        db.close()
-    return {int(w): Probe(seq=int(seq), time_s=float(t), values_um=json.loads(body), sd_um=float(sd),
-                          source=str(src)) for w, seq, t, sd, body, src in rows}
-
-
-def stored_probes(path: str | Path) -> Sequence[tuple[int, Probe]]:
-    """The probes stored in a record store file (for export and tests)."""
-    store = ProbeStore(path)
-    try:
-        return store.probes()
-    finally:
-        store.close()
 
 
 def band_um(update: EstimateUpdate) -> dict[str, float]:

@@ -22,9 +22,8 @@ from types import MappingProxyType
 from typing import Any
 
 from drivers.base import FASTEST_PERIOD_S
-from gateway.adaptive.settings import Probes, parse_probes
 from gateway.errors import ProfileError
-from gateway.live.settings import (
+from gateway.profile.live import (
     Compensation,
     Live,
     OpcUa,
@@ -34,7 +33,8 @@ from gateway.live.settings import (
     parse_opcua,
     parse_records,
 )
-from gateway.outputs.mqtt import Mqtt, parse_mqtt
+from gateway.profile.mqtt import Mqtt, parse_mqtt
+from gateway.profile.probes import Probes, parse_probes
 from gateway.recording import MAX_PERIOD_S, MIN_PERIOD_S
 from gateway.tomlcheck import NAME, Table, TomlDoc
 
