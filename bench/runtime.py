@@ -168,11 +168,11 @@ def live_run(hours: float, speedup: float, tmp: Path, *, dry: bool = False) -> f
     finally:
         server.terminate()
         server.wait(timeout=10)
-    dev = health["devices"][0]
+    dev = health.devices[0]
     if dry:
         full = recs[1:]
         print(f"\ndry run (compensation off), {hours:g} h at {speedup:g}x ({run_s:.0f} s wall): compensation writer "
-              f"thread {writer_cpu:.2%} of one core; {dev['reads_ok'] / run_s:.1f} reads/s; "
+              f"thread {writer_cpu:.2%} of one core; {dev.reads_ok / run_s:.1f} reads/s; "
               f"{sum(r.status == 'good' for r in full)} of {len(full)} whole windows good")
         return writer_cpu
     full = recs[1:]
@@ -180,15 +180,15 @@ def live_run(hours: float, speedup: float, tmp: Path, *, dry: bool = False) -> f
           f"(simulator in another process), CNC over Modbus TCP, OPC UA on; {os.cpu_count()} cores; Python "
           f"{sys.version.split()[0]}")
     print(f"start (store, estimator, writer sync, OPC UA, acquisition): {started:.2f} s")
-    print(f"sampling: {dev['reads_ok'] / run_s:.1f} reads/s, {dev['ticks_skipped']} ticks skipped, "
-          f"{dev['reads_failed']} failed; lateness p50 {lateness[0]:.2f} ms, p99 {lateness[1]:.2f} ms; windows "
+    print(f"sampling: {dev.reads_ok / run_s:.1f} reads/s, {dev.ticks_skipped} ticks skipped, "
+          f"{dev.reads_failed} failed; lateness p50 {lateness[0]:.2f} ms, p99 {lateness[1]:.2f} ms; windows "
           f"{len(recs)} ({sum(r.status == 'good' for r in full)} of {len(full)} whole ones good, missed ticks at "
           f"most {max((r.missed_ticks for r in full), default=0)} a window)")
     print(f"estimator update in the closer: median {np.median(upd):.0f} us, max {upd.max():.0f} us")
     print(f"window close -> verified write (estimate, submit, limits, Modbus write, read-back): median "
           f"{np.median(lat):.2f} ms, p99 {np.percentile(lat, 99):.2f} ms, max {lat.max():.2f} ms over {len(lat)} "
-          f"writes; {health['compensation']['beats']} heartbeats, {health['compensation']['failures']} failures; "
-          f"alarms at the end: {[a['name'] for a in health['alarms']] or 'none'}")
+          f"writes; {health.compensation.beats} heartbeats, {health.compensation.failures} failures; "
+          f"alarms at the end: {[a.name for a in health.alarms] or 'none'}")
     cpu = (cpu_end - cpu_start) / run_s
     rss = np.array([s[2] for s in samples]) / 2**20
     ts = np.array([s[0] for s in samples])

@@ -28,6 +28,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from drivers.base import Driver
@@ -42,6 +43,27 @@ Sink = Callable[[WindowRecord], None]
 
 _HIST_BIN_S = 10e-6  # lateness histogram: 10 us bins up to 50 ms, the last bin takes the rest
 _HIST_BINS = 5000
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class DeviceStatus:
+    """One device's sampling since start: runner state, read counters, ticks run and skipped, first errors.
+
+    ``rate_hz``: good reads per wall second since start, when the caller knows the wall time (the live
+    gateway's health; NaN otherwise, and on a stepped clock).
+    """
+
+    device: str
+    state: str  # new, on_scan, off_scan, closed
+    reads_ok: int
+    reads_failed: int
+    timeouts: int
+    off_scan_ticks: int
+    recoveries: int
+    ticks_run: int
+    ticks_skipped: int
+    errors: tuple[str, ...] = ()
+    rate_hz: float = math.nan
 
 
 class DeviceSampler:
@@ -442,13 +464,10 @@ class Acquisition:
             s.hand_in_finished(until_s)
         self.closer.drain()
 
-    def status(self) -> list[dict[str, Any]]:
-        """Per device: state, totals since start, ticks run and skipped (for logs and benchmarks)."""
-        out = []
-        for s in self.samplers:
-            t = s.runner.total
-            out.append({"device": s.name, "state": s.runner.state, "reads_ok": t.reads_ok,
-                        "reads_failed": t.reads_failed, "timeouts": t.timeouts, "off_scan_ticks": t.off_scan_ticks,
-                        "recoveries": t.recoveries, "ticks_run": s.ticks_run, "ticks_skipped": s.ticks_skipped,
-                        "errors": list(t.errors)})
-        return out
+    def status(self) -> tuple[DeviceStatus, ...]:
+        """Per device: state, totals since start, ticks run and skipped (for health, logs and benchmarks)."""
+        return tuple(DeviceStatus(device=s.name, state=s.runner.state, reads_ok=t.reads_ok,
+                                  reads_failed=t.reads_failed, timeouts=t.timeouts, off_scan_ticks=t.off_scan_ticks,
+                                  recoveries=t.recoveries, ticks_run=s.ticks_run, ticks_skipped=s.ticks_skipped,
+                                  errors=tuple(t.errors))
+                     for s in self.samplers for t in (s.runner.total,))

@@ -115,13 +115,13 @@ def test_closed_loop_cuts_the_error_by_70_percent_and_the_cnc_applies_what_is_wr
     assert all(tuple(round(w.commanded_um[a], 6) for a in "xyz") in applied for w in writes)  # written == applied
     for a, b in itertools.pairwise(writes):
         assert max(abs(b.applied_um[x] - a.applied_um[x]) for x in "xyz") <= MAX_STEP_UM + 1e-9  # never a jump
-    assert health["alarms"] == []
-    assert health["windows_live"] == 180
-    assert health["compensation"]["synced"] is True
+    assert health.alarms == ()
+    assert health.windows_live == 180
+    assert health.compensation.synced is True
     assert rig.devices.cnc.update().trips == 0
-    est = health["estimate"]["estimate_um"]["z"]
+    est = health.estimate.estimate_um["z"]
     assert values["Estimate.z_um"] == pytest.approx(est)
-    assert values["Compensation.Commanded.z_um"] == pytest.approx(health["compensation"]["commanded_um"]["z"])
+    assert values["Compensation.Commanded.z_um"] == pytest.approx(health.compensation.commanded_um["z"])
     assert values["Compensation.Mode"] == "write"
     assert values["Health.AlarmCount"] == 0
     assert values["Health.WindowIndex"] == 179
@@ -166,8 +166,8 @@ def test_restart_rebuilds_the_estimate_and_changes_the_compensation_by_less_than
     counts = [abs(round(10 * rig.offsets[i][a]) - round(10 * ref.offsets[i][a])) for i in after for a in "xyz"]
     assert max(counts) <= 1
     assert sum(c == 0 for c in counts) / len(counts) > 0.9
-    assert health["gaps"]["filled_windows"] == 1  # the window in progress at the kill, held
-    assert "filled by gap policy hold" in health["gaps"]["last"]
+    assert health.gaps.filled_windows == 1  # the window in progress at the kill, held
+    assert "filled by gap policy hold" in health.gaps.last
     writes, events = audited(data)
     assert [k for _, k, n, _ in events if n == "estimator"] == ["rebuild"]
     for a, b in itertools.pairwise(writes):
@@ -199,8 +199,8 @@ def test_devices_dropping_and_saturated_values_hold_the_offsets_without_a_jump(t
             adc.faults.release("spindle_i1")
             gw.run_stepped(100 * 60)
             health = gw.health()
-        assert health["alarms"] == []
-        assert health["gaps"]["filled_windows"] >= 7
+        assert health.alarms == ()
+        assert health.gaps.filled_windows >= 7
         with RecordStore(data / STORE_NAME) as store:  # the store says why each window was not used
             bad = {r.index: r for r in store.windows() if r.status != "good"}
         dropped = [r for r in bad.values() if r.status == "insufficient"]
@@ -245,9 +245,9 @@ def test_cnc_unreachable_at_start_then_back(tmp_path):
                 time.sleep(0.02)
             gw.run_stepped(50 * 60)
             health = gw.health()
-        assert health["compensation"]["synced"] is True
-        assert health["compensation"]["writes"] > 0
-        assert "cnc" not in [a["name"] for a in health["alarms"]]
+        assert health.compensation.synced is True
+        assert health.compensation.writes > 0
+        assert "cnc" not in [a.name for a in health.alarms]
         assert cnc.update().applied_um["z"] > 1.0  # compensating the spindle's growth
     finally:
         rig.close()

@@ -97,8 +97,8 @@ def test_probes_update_the_live_estimate_and_a_restart_rebuilds_it(tmp_path):
     assert model_err > 2.0
     assert updated_err < 0.5 * model_err
     assert updated_err < 1.96 * est[2].sd_um + 0.3  # inside its band (and the probe noise)
-    assert set(health["estimate"]["sd_um"]) == {"x", "y", "z"}
-    assert 0 < health["estimate"]["sd_um"]["z"] < 3.0
+    assert set(health.estimate.sd_um) == {"x", "y", "z"}
+    assert 0 < health.estimate.sd_um["z"] < 3.0
     # every probe the CNC took reached the store once, after the window it was applied in
     probes = stored_probes(data / STORE_NAME)
     assert [p.seq for _, p in probes] == list(range(1, len(cnc.probes_taken) + 1))

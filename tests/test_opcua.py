@@ -11,29 +11,54 @@ from __future__ import annotations
 import asyncio
 import math
 import threading
+from types import MappingProxyType
 
 import pytest
 from tests_paths import PROFILES
 
+from gateway.live.audit import Alarm, WriteEntry
+from gateway.live.compensation import WriterStatus
+from gateway.live.estimator import EstimateUpdate
+from gateway.live.health import GapStatus, Health
 from gateway.live.opcua_server import OpcUaServer
 from gateway.model import load_model
 from gateway.profile import load_profile
 from gateway.profile.live import OpcUa
+from gateway.sampler import DeviceStatus
+from gateway.windows import ChannelStats, DeviceQuality, WindowRecord
 
-HEALTH = {
-    "factors": {"spindle_speed": 1000.0, "z_i_sq": 13.3},
-    "estimate": {"window": 42, "end_s": 2580.0, "estimate_um": {"x": -1.5, "y": 0.25, "z": -12.5}, "usable": True,
-                 "reason": ""},
-    "compensation": {"mode": "write", "commanded_um": {"x": 1.5, "y": -0.2, "z": 12.5}, "writes": 7,
-                     "last_write": {"t_s": 2581.0, "window": 42, "mode": "write", "verified": True,
-                                    "commanded_um": {"x": 1.5, "y": -0.2, "z": 12.5},
-                                    "applied_um": {"x": 1.5, "y": -0.2, "z": 12.5}}},
-    "alarms": [{"name": "clamped", "message": "target beyond +-100 um", "since_s": 2500.0}],
-    "devices": [{"device": "adc", "state": "on_scan", "rate_hz": 499.5}],
-    "last_window": {"missed_ticks": 3},
-    "gaps": {"filled_windows": 2},
-    "uptime_s": 12.5,
-}
+
+def window(index: int = 42, *, factors=None, status: str = "good", reads_ok: int = 97) -> WindowRecord:
+    """A window of the ADC board: 100 ticks expected, ``reads_ok`` of them read."""
+    factors = {"spindle_speed": 1000.0, "z_i_sq": 13.3} if factors is None else factors
+    stats = ChannelStats(count=reads_ok, coverage=reads_ok / 100, mean=1.0, mean_square=1.0, mean_abs=1.0, min=1.0,
+                         max=1.0, saturated=0, bad=0)
+    device = DeviceQuality(ticks_expected=100, ticks_run=100, ticks_skipped=0, reads_ok=reads_ok,
+                           reads_failed=100 - reads_ok, timeouts=0, off_scan_ticks=0, largest_gap_s=0.0,
+                           lateness_max_s=0.0, read_time_max_s=0.0, tick_s=0.6)
+    return WindowRecord(index=index, start_s=index * 60.0, end_s=(index + 1) * 60.0, status=status,
+                        factors=MappingProxyType(factors), channels=MappingProxyType({"spindle_speed": stats}),
+                        devices=MappingProxyType({"adc": device}))
+
+
+def estimate(index: int = 42, *, usable: bool = True, reason: str = "") -> EstimateUpdate:
+    est = MappingProxyType({"x": -1.5, "y": 0.25, "z": -12.5})
+    return EstimateUpdate(index=index, end_s=(index + 1) * 60.0, estimate_um=est, next_um=est,
+                          factors=MappingProxyType({}), usable=usable, reason=reason)
+
+
+LAST_WRITE = WriteEntry(t_s=2581.0, window=42, mode="write", verified=True,
+                        estimate_um={"x": -1.5, "y": 0.25, "z": -12.5}, target_um={"x": 1.5, "y": -0.2, "z": 12.5},
+                        commanded_um={"x": 1.5, "y": -0.2, "z": 12.5}, applied_um={"x": 1.5, "y": -0.2, "z": 12.5})
+HEALTH = Health(
+    machine="sim-vmc", clock_s=2581.0, uptime_s=12.5, windows_live=43, last_window=window(), estimate=estimate(),
+    compensation=WriterStatus(mode="write", synced=True, commanded_um={"x": 1.5, "y": -0.2, "z": 12.5}, writes=7,
+                              beats=40, failures=0, cnc_status=17, last_write=LAST_WRITE, holding=False),
+    alarms=(Alarm(name="clamped", message="target beyond +-100 um", since_s=2500.0),),
+    devices=(DeviceStatus(device="adc", state="on_scan", reads_ok=4995, reads_failed=0, timeouts=0, off_scan_ticks=0,
+                          recoveries=0, ticks_run=5000, ticks_skipped=5, rate_hz=499.5),),
+    gaps=GapStatus(filled_windows=2, policy="hold"), stale_after_s=150.0)
+
 PASSWORD = "hold-me-4711"
 ENCRYPTED = "Basic256Sha256_SignAndEncrypt"
 

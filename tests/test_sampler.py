@@ -154,7 +154,7 @@ def test_a_device_dropped_mid_window_is_reported_and_recovered_while_the_other_k
             while time.monotonic() < deadline and not (
                     len(records) >= n + 2 and records[-1].status == "good" and records[-2].status == "good"):
                 time.sleep(0.05)
-        status = {s["device"]: s for s in acq.status()}
+        status = {s.device: s for s in acq.status()}
     dropped = [r for r in records if "adc" in r.devices_in_error and r.devices["adc"].reads_failed]
     assert dropped, [(r.index, r.status, r.devices_in_error) for r in records]
     worst = min(dropped, key=lambda r: r.channels["spindle_speed"].coverage)
@@ -169,5 +169,5 @@ def test_a_device_dropped_mid_window_is_reported_and_recovered_while_the_other_k
     # and the board is back: the last windows are good, with both devices in them
     assert records[-1].status == "good"
     assert records[-1].devices_in_error == ()
-    assert status["adc"]["recoveries"] >= 1
+    assert status["adc"].recoveries >= 1
     assert [r.index for r in records] == list(range(records[0].index, records[-1].index + 1))

@@ -161,8 +161,8 @@ def _live(args: argparse.Namespace, out: Path, model: object) -> int:
             windows, not_good, _ = gw.store.summary()
         wall = time.perf_counter() - t0
         audit_ok, audit_n = _audit_matches(data, machine)
-    print(f"\n    {end_s / 3600:g} simulated hours in {wall:.0f} s; {health['windows_live']} windows, "
-          f"{health['compensation']['writes']} verified writes, {health['compensation']['beats']} heartbeats, "
+    print(f"\n    {end_s / 3600:g} simulated hours in {wall:.0f} s; {health.windows_live} windows, "
+          f"{health.compensation.writes} verified writes, {health.compensation.beats} heartbeats, "
           f"{audit_n} audited writes: {'every one applied as written' if audit_ok else 'MISMATCHES (see audit)'}")
     print(_validity(windows, not_good, lockstep=lockstep, speedup=speedup))
     errs = closed_loop_errors(machine, end_s)

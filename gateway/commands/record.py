@@ -112,9 +112,8 @@ def run(args: argparse.Namespace) -> int:
             if previous is not None:
                 signal.signal(signal.SIGTERM, previous)
         for s in acq.status():
-            print(f"device {s['device']}: {s['reads_ok']} reads, {s['reads_failed']} failed "
-                  f"({s['timeouts']} timeouts), {s['ticks_skipped']} ticks skipped, "
-                  f"{s['off_scan_ticks']} off-scan, {s['recoveries']} recoveries")
+            print(f"device {s.device}: {s.reads_ok} reads, {s.reads_failed} failed ({s.timeouts} timeouts), "
+                  f"{s.ticks_skipped} ticks skipped, {s.off_scan_ticks} off-scan, {s.recoveries} recoveries")
         if len(store):
             export_recording(store, profile, export_path)
             print(f"{len(store)} windows in {store.path}; exported to {export_path}")

@@ -19,7 +19,7 @@ import sqlite3
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -135,7 +135,7 @@ class AuditLog:
                 self._db = None
 
 
-@dataclass(kw_only=True)
+@dataclass(frozen=True, kw_only=True, slots=True)
 class Alarm:
     """An active alarm: what, since when (clock time), how often it was raised again while active."""
 
@@ -159,10 +159,8 @@ class Alarms:
         with self._lock:
             a = self._active.get(name)
             if a is not None:
-                a.repeats += 1
-                changed = a.message != message
-                a.message = message
-                if not changed:
+                self._active[name] = replace(a, message=message, repeats=a.repeats + 1)
+                if a.message == message:
                     return
             else:
                 self._active[name] = Alarm(name=name, message=message, since_s=t_s)
@@ -190,8 +188,7 @@ class Alarms:
 
     def active(self) -> list[Alarm]:
         with self._lock:
-            return [Alarm(name=a.name, message=a.message, since_s=a.since_s, repeats=a.repeats)
-                    for a in self._active.values()]
+            return list(self._active.values())
 
     def __contains__(self, name: str) -> bool:
         with self._lock:

@@ -46,8 +46,8 @@ import os
 import threading
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Any
 
 from gateway.clock import Clock
 from gateway.errors import CompensationError, DriverError
@@ -58,6 +58,28 @@ from gateway.live.plausibility import Plausibility
 from gateway.profile.live import Compensation
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class WriterStatus:
+    """The compensation writer at one moment, for health, OPC UA, MQTT and logs.
+
+    ``mode``: ``"write"`` or ``"dry-run"``; ``synced``: connected to the CNC and holding what it applies;
+    ``commanded_um``: the offsets the CNC applies as far as the writer knows (axis -> um); ``writes``,
+    ``beats``, ``failures``: counters since start; ``cnc_status``: the CNC's last status word (``None``:
+    not read, or not mapped); ``last_write``: the last write the CNC applies (or, dry, would apply);
+    ``holding``: a fault (inputs, an implausible estimate) holds the offsets.
+    """
+
+    mode: str
+    synced: bool
+    commanded_um: Mapping[str, float]
+    writes: int
+    beats: int
+    failures: int
+    cnc_status: int | None
+    last_write: WriteEntry | None
+    holding: bool
 
 
 class CompensationWriter:
@@ -465,16 +487,13 @@ class CompensationWriter:
                  "" if verified or mode in ("unknown", "observed", "refused") else " (MISMATCH)")
         return entry
 
-    def status(self) -> dict[str, Any]:
-        """Mode, link state, offsets, counters and the last write, for health and OPC UA."""
-        lw = self.last_write
-        return {"mode": "write" if self.writing else "dry-run", "synced": self.synced,
-                "commanded_um": dict(self.commanded_um), "writes": self.writes, "beats": self.beats,
-                "failures": self.failures, "cnc_status": None if self.cnc_state is None else self.cnc_state.status,
-                "last_write": None if lw is None else {"t_s": lw.t_s, "window": lw.window, "mode": lw.mode,
-                                                       "commanded_um": dict(lw.commanded_um),
-                                                       "applied_um": dict(lw.applied_um), "verified": lw.verified},
-                "holding": self._fault_since_s is not None}
+    def status(self) -> WriterStatus:
+        """Mode, link state, offsets, counters and the last write (see :class:`WriterStatus`)."""
+        return WriterStatus(mode="write" if self.writing else "dry-run", synced=self.synced,
+                            commanded_um=MappingProxyType(dict(self.commanded_um)), writes=self.writes,
+                            beats=self.beats, failures=self.failures,
+                            cnc_status=None if self.cnc_state is None else self.cnc_state.status,
+                            last_write=self.last_write, holding=self._fault_since_s is not None)
 
 
 def _fmt(values: Mapping[str, float]) -> str:

@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from gateway.adaptive.filter import Z95
 from gateway.errors import ModelError
 from gateway.model import LiveEstimator, ThermalModel
 from gateway.model.coverage import check_coverage
@@ -90,6 +91,11 @@ class EstimateUpdate:
     #: why this window's factors lie outside the region the identification covered ("" inside, or the model
     #: records none): the estimate extrapolates (gateway.model.coverage)
     outside_coverage: str = ""
+
+    @property
+    def band95_um(self) -> Mapping[str, float]:
+        """The 95 % half-band per axis (um): the true displacement is within +- this (empty without probes)."""
+        return MappingProxyType({a: Z95 * v for a, v in self.sd_um.items()})
 
 
 def bad_reason(record: WindowRecord, factors: Iterable[str], channels: Mapping[str, str] | None = None) -> str:

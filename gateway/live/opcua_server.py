@@ -42,6 +42,7 @@ from collections.abc import Callable
 from typing import Any
 
 from gateway.errors import GatewayError
+from gateway.live.health import Health
 from gateway.model import ThermalModel
 from gateway.profile import Profile
 from gateway.profile.live import OpcUa
@@ -65,7 +66,7 @@ class OpcUaServer:
         self.port: int | None = None
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._queue: asyncio.Queue[dict[str, Any] | None] | None = None
+        self._queue: asyncio.Queue[Health | None] | None = None
         self._ready = threading.Event()
         self._error: BaseException | None = None
         self._nodes: dict[str, Any] = {}
@@ -88,7 +89,7 @@ class OpcUaServer:
                                f"{self._error}") from self._error
         return self
 
-    def publish(self, health: dict[str, Any]) -> None:
+    def publish(self, health: Health) -> None:
         """Hand over a health snapshot (thread-safe, cheap; only the newest matters)."""
         loop, queue = self._loop, self._queue
         if loop is None or queue is None or loop.is_closed():
@@ -249,49 +250,47 @@ class OpcUaServer:
             if item is not ...:  # counted once the snapshot is shown and the hold request it met is passed on
                 self.published += 1
 
-    async def _apply(self, h: dict[str, Any]) -> None:
+    async def _apply(self, h: Health) -> None:
         values: dict[str, Any] = {}
-        for name, v in h.get("factors", {}).items():
+        for name, v in h.factors.items():
             values[f"Factors.{name}"] = float(v)
-        est = h.get("estimate")
-        if est:
-            for a, v in est["estimate_um"].items():
+        est = h.estimate
+        if est is not None:
+            for a, v in est.estimate_um.items():
                 values[f"Estimate.{a}_um"] = float(v)
-            for a, v in est.get("sd_um", {}).items():
+            for a, v in est.band95_um.items():
                 if f"Estimate.{a}_band95_um" in self._nodes:
-                    values[f"Estimate.{a}_band95_um"] = 1.959963984540054 * float(v)
-            values["Estimate.Window"] = int(est["window"])
-            values["Estimate.Usable"] = bool(est["usable"])
-            values["Estimate.Reason"] = str(est["reason"])
-        comp = h.get("compensation")
-        if comp:
-            for a, v in comp["commanded_um"].items():
+                    values[f"Estimate.{a}_band95_um"] = float(v)
+            values["Estimate.Window"] = est.index
+            values["Estimate.Usable"] = est.usable
+            values["Estimate.Reason"] = est.reason
+        comp = h.compensation
+        if comp is not None:
+            for a, v in comp.commanded_um.items():
                 values[f"Compensation.Commanded.{a}_um"] = float(v)
-            lw = comp.get("last_write")
-            if lw:
-                for a, v in lw["applied_um"].items():
+            lw = comp.last_write
+            if lw is not None:
+                for a, v in lw.applied_um.items():
                     values[f"Compensation.Applied.{a}_um"] = float(v)
-                values["Compensation.LastWriteTimeS"] = float(lw["t_s"])
-                values["Compensation.Verified"] = bool(lw["verified"])
-            values["Compensation.Writes"] = int(comp["writes"])
-        alarms = [f"{a['name']}: {a['message']}" for a in h.get("alarms", [])]
+                values["Compensation.LastWriteTimeS"] = float(lw.t_s)
+                values["Compensation.Verified"] = lw.verified
+            values["Compensation.Writes"] = comp.writes
+        alarms = [f"{a.name}: {a.message}" for a in h.alarms]
         values["Health.Alarms"] = alarms
         values["Health.AlarmCount"] = len(alarms)
-        devices = h.get("devices", [])
-        values["Health.Devices"] = [f"{d['device']}: {d['state']}" for d in devices]
-        rates = [d.get("rate_hz", math.nan) for d in devices]
-        values["Health.SampleRateHz"] = float(min(rates)) if rates else math.nan
-        lw_ = h.get("last_window")
-        if lw_:
-            values["Health.MissedTicks"] = int(lw_["missed_ticks"])
-            values["Health.WindowIndex"] = int(lw_.get("index", -1))
-            values["Health.WindowStatus"] = str(lw_.get("status", ""))
-            values["Health.WindowQuality"] = str(lw_.get("quality", ""))
-            values["Health.CoveragePct"] = 100.0 * float(lw_.get("coverage", math.nan))
-            values["Health.SamplesTaken"] = int(lw_.get("samples_taken", 0))
-            values["Health.SamplesExpected"] = int(lw_.get("samples_expected", 0))
-        values["Health.GapWindows"] = int(h.get("gaps", {}).get("filled_windows", 0))
-        values["Health.UptimeS"] = float(h.get("uptime_s", 0.0))
+        values["Health.Devices"] = [f"{d.device}: {d.state}" for d in h.devices]
+        values["Health.SampleRateHz"] = h.sample_rate_hz
+        w = h.last_window
+        if w is not None:
+            values["Health.MissedTicks"] = w.missed_ticks
+            values["Health.WindowIndex"] = w.index
+            values["Health.WindowStatus"] = w.status
+            values["Health.WindowQuality"] = w.quality()
+            values["Health.CoveragePct"] = 100.0 * w.coverage
+            values["Health.SamplesTaken"] = w.samples_taken
+            values["Health.SamplesExpected"] = w.samples_expected
+        values["Health.GapWindows"] = h.gaps.filled_windows
+        values["Health.UptimeS"] = h.uptime_s
         from asyncua import ua
 
         for key, v in values.items():

@@ -22,7 +22,6 @@
 from __future__ import annotations
 
 import logging
-import math
 import threading
 from collections import deque
 from collections.abc import Iterable
@@ -222,8 +221,3 @@ class ProbedEstimator(Estimator):
         if n and self.last is not None:
             self.last = self._updated(self.last)
         return n
-
-
-def band_um(update: EstimateUpdate) -> dict[str, float]:
-    """The 95 % half-band per axis of an update (NaN where it has none)."""
-    return {a: Z95 * update.sd_um.get(a, math.nan) for a in update.estimate_um}

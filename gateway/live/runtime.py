@@ -26,6 +26,7 @@ import math
 import threading
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +37,7 @@ from gateway.live.audit import AUDIT_NAME, Alarms, AuditLog
 from gateway.live.cnc import CncLink
 from gateway.live.compensation import CompensationWriter
 from gateway.live.estimator import EstimateUpdate, Estimator, history_windows, retention_problems
+from gateway.live.health import GapStatus, Health
 from gateway.live.plausibility import Plausibility, model_refusals
 from gateway.model import ThermalModel
 from gateway.profile import Profile
@@ -323,7 +325,8 @@ class LiveGateway:
         if self.outputs:
             from gateway.live.outputs import snapshot
 
-            snap = snapshot(self, record, update)
+            snap = snapshot(self.profile, record, update, self.writer.status(),
+                            self.alarms.active() if self.alarms else ())
             for output in self.outputs:
                 try:
                     output.window(snap)
@@ -367,37 +370,23 @@ class LiveGateway:
             self.opcua.publish(self.health())
 
     # -- health -------------------------------------------------------------------------------------------
-    def health(self) -> dict[str, Any]:
-        """A snapshot: sampling, the last window, the estimate, compensation, gaps, alarms."""
+    def health(self) -> Health:
+        """A frozen snapshot: sampling, the last window, the estimate, compensation, gaps, alarms."""
         with self._lock:
             rec = self.last_record
             windows = self.windows_live
-        est = self.estimator.last if self.estimator is not None else None
-        devices = self.acquisition.status() if self.acquisition is not None else []
         wall = time.monotonic() - self.started_wall if self.started_wall is not None else 0.0
-        for d in devices:
-            d["rate_hz"] = d["reads_ok"] / wall if wall > 0 and not self.stepped else math.nan
-        hist = self.estimator.history if self.estimator is not None else None
-        return {
-            "machine": self.profile.name,
-            "clock_s": self.clock.now(),
-            "uptime_s": wall,
-            "windows_live": windows,
-            "rebuilt_windows": self.estimator.rebuilt_windows if self.estimator is not None else 0,
-            "devices": devices,
-            "last_window": None if rec is None else {
-                "index": rec.index, "end_s": rec.end_s, "status": rec.status, "coverage": rec.coverage,
-                "samples_taken": rec.samples_taken, "samples_expected": rec.samples_expected,
-                "missed_ticks": rec.missed_ticks, "devices_in_error": list(rec.devices_in_error),
-                "quality": rec.quality(), "reason": rec.reason},
-            "factors": {} if rec is None else dict(rec.factors),
-            "estimate": None if est is None else {"window": est.index, "end_s": est.end_s,
-                                                   "estimate_um": dict(est.estimate_um), "usable": est.usable,
-                                                   "reason": est.reason, "sd_um": dict(est.sd_um),
-                                                   "outside_coverage": est.outside_coverage},
-            "compensation": self.writer.status() if self.writer is not None else None,
-            "gaps": {"filled_windows": hist.filled_total if hist else 0, "policy": self.profile.live.gap_policy,
-                     "last": hist.gaps[-1].describe(self.profile.sampling.window_s) if hist and hist.gaps else ""},
-            "alarms": [{"name": a.name, "message": a.message, "since_s": a.since_s}
-                       for a in (self.alarms.active() if self.alarms else [])],
-        }
+        devices = self.acquisition.status() if self.acquisition is not None else ()
+        if wall > 0 and not self.stepped:
+            devices = tuple(replace(d, rate_hz=d.reads_ok / wall) for d in devices)
+        est = self.estimator
+        hist = est.history if est is not None else None
+        live = self.profile.live
+        return Health(
+            machine=self.profile.name, clock_s=self.clock.now(), uptime_s=wall, windows_live=windows,
+            rebuilt_windows=est.rebuilt_windows if est is not None else 0, devices=devices, last_window=rec,
+            estimate=est.last if est is not None else None,
+            compensation=self.writer.status() if self.writer is not None else None,
+            gaps=GapStatus(filled_windows=hist.filled_total if hist else 0, policy=live.gap_policy,
+                           last=hist.gaps[-1].describe(self.profile.sampling.window_s) if hist and hist.gaps else ""),
+            alarms=tuple(self.alarms.active()) if self.alarms else (), stale_after_s=live.stale_after_s)

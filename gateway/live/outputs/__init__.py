@@ -16,10 +16,16 @@ from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, Protocol
+
+from gateway.live.audit import Alarm
+from gateway.live.compensation import WriterStatus
+from gateway.live.estimator import EstimateUpdate
+from gateway.profile import Profile
+from gateway.windows import WindowRecord
 
 
 class Quality(enum.StrEnum):
@@ -103,26 +109,25 @@ class Output(Protocol):
     def stop(self) -> None: ...
 
 
-def snapshot(gateway: Any, record: Any, update: Any) -> WindowSnapshot:
-    """The snapshot of ``record`` and the ``update`` that followed it, from a running live gateway."""
-    profile = gateway.profile
-    comp = gateway.writer.status() if gateway.writer is not None else {}
-    last = comp.get("last_write") or {}
-    alarms = tuple(f"{a.name}: {a.message}" for a in (gateway.alarms.active() if gateway.alarms else []))
+def snapshot(profile: Profile, record: WindowRecord, update: EstimateUpdate, writer: WriterStatus | None,
+             alarms: Iterable[Alarm] = ()) -> WindowSnapshot:
+    """The snapshot of ``record``, the ``update`` that followed it, the writer's status and the active alarms."""
+    last = writer.last_write if writer is not None else None
     return WindowSnapshot(
         machine=profile.name, window=record.index, end_s=record.end_s, status=record.status,
         coverage=record.coverage, samples_taken=record.samples_taken, samples_expected=record.samples_expected,
         missed_ticks=record.missed_ticks, devices_in_error=tuple(record.devices_in_error),
         factors=_frozen(record.factors), factor_units=_frozen({f.name: f.unit for f in profile.factors}),
-        estimate_um=_frozen(update.estimate_um), usable=bool(update.usable), reason=update.reason,
-        filled_windows=update.filled, mode=comp.get("mode", "dry-run"),
-        commanded_um=_frozen(comp.get("commanded_um", {})), applied_um=_frozen(last.get("applied_um", {})),
-        verified=bool(last.get("verified", False)), writes=int(comp.get("writes", 0)), alarms=alarms,
-        window_reason=getattr(record, "reason", ""),
-        band95_um=_frozen({a: 1.959963984540054 * v for a, v in getattr(update, "sd_um", {}).items()}))
+        estimate_um=_frozen(update.estimate_um), usable=update.usable, reason=update.reason,
+        filled_windows=update.filled, mode=writer.mode if writer is not None else "dry-run",
+        commanded_um=_frozen(writer.commanded_um if writer is not None else {}),
+        applied_um=_frozen(last.applied_um if last is not None else {}),
+        verified=last.verified if last is not None else False, writes=writer.writes if writer is not None else 0,
+        alarms=tuple(f"{a.name}: {a.message}" for a in alarms), window_reason=record.reason,
+        band95_um=_frozen(update.band95_um))
 
 
-def record_snapshot(profile: Any, record: Any) -> WindowSnapshot:
+def record_snapshot(profile: Profile, record: WindowRecord) -> WindowSnapshot:
     """A window known only from the records store (the gateway stopped before an output took it).
 
     Factors and quality come from the record; the estimate and offsets of that moment are not stored, so
@@ -134,4 +139,4 @@ def record_snapshot(profile: Any, record: Any) -> WindowSnapshot:
         missed_ticks=record.missed_ticks, devices_in_error=tuple(record.devices_in_error),
         factors=_frozen(record.factors), factor_units=_frozen({f.name: f.unit for f in profile.factors}),
         reason="window taken from the records store after a restart: estimate and offsets not stored",
-        window_reason=getattr(record, "reason", ""), source="records")
+        window_reason=record.reason, source="records")
