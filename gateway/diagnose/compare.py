@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gateway.diagnose.data import Stack, recording_label
-from gateway.diagnose.refit import Reidentified
+from gateway.diagnose.refit import Reidentified, held_out_reidentified
 from gateway.diagnose.search import Options, Trial, setting_columns
 from gateway.diagnose.select import BURN_IN, held_out, one_sided_p
 from gateway.estimate import AxisFigures, error_figures
@@ -97,6 +97,8 @@ def compare(stack: Stack, model: ThermalModel, block: np.ndarray, accepted: Sequ
         specs.append(("reidentified", "re-identified on all recordings" + (" with the accepted terms" if with_terms
                                                                            else " (more data alone, no new term)"),
                       reid.model))
+    # the re-identified model is identified again without each fold: its time constants were chosen on all data
+    nested = held_out_reidentified(stack, model, reid, folds, block, artefacts=artefacts) if reid is not None else {}
     for key, title, m in specs:
         pred, sse, metrics = {}, np.zeros(k), {}
         for i, a in enumerate(stack.axes):
@@ -124,7 +126,12 @@ def compare(stack: Stack, model: ThermalModel, block: np.ndarray, accepted: Sequ
                         e = t.evidence.get(a)
                         if e is not None and e.included and e.setting is not None:
                             cols += [c[rows] for c in setting_columns(stack, e.setting)[0]]
-            p = held_out(target, folds[rows], cols, zeros=zeros)
+            if key == "reidentified":
+                if a not in nested:
+                    continue
+                p = nested[a][rows] - shift
+            else:
+                p = held_out(target, folds[rows], cols, zeros=zeros)
             err = target - p
             sc = score[rows]
             for f in range(k):
