@@ -120,6 +120,21 @@ def test_the_room_is_named_and_the_rewritten_model_predicts_a_fresh_day(plant_da
     assert [i.name for i in d.extended.inputs] == ["day_sin", "day_cos"]
 
 
+def test_the_rewritten_model_covers_and_bounds_the_days_it_was_fitted_on(plant_data, diagnosed):
+    exps, days, _, base = plant_data
+    d = diagnosed
+    assert d.comparison.chosen == "reidentified"
+    # the experiments ran the spindle up to 1000 rpm, the days to 2500: the identified model's coverage ends at
+    # 1000, the model fitted on the days too covers them (a fresh day at 2500 rpm is no excursion for it)
+    assert base.coverage.ranges["speed"][1] == pytest.approx(1000.0, rel=0.05)
+    assert d.extended.coverage.ranges["speed"][1] == pytest.approx(2500.0 - 0.0, rel=0.05)
+    # and its plausibility envelope holds what the days measured (the live gateway would hold offsets beyond it)
+    measured_span = max(float(np.ptp(r.displacement["z"])) for r in days)
+    assert base.envelope.axes["z"].max_abs_um < measured_span
+    assert d.extended.envelope.axes["z"].max_abs_um >= measured_span
+    assert "diagnosis: 7 recordings" in d.extended.envelope.source
+
+
 def test_without_the_room_nothing_is_named_and_the_written_model_is_no_worse():
     exps = [_experiment(1000.0, start_h=9.0, seed=1, room=False), _experiment(500.0, start_h=14.0, seed=2, room=False),
             _experiment(500.0, start_h=20.0, seed=3, alternating=True, room=False)]

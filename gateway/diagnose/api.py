@@ -46,7 +46,10 @@ from gateway.diagnose.refit import Reidentified, path_corrections, reidentify
 from gateway.diagnose.search import Options, SearchResult, Trial, search
 from gateway.diagnose.select import make_blocks
 from gateway.estimate import Estimate, estimate
+from gateway.model.coverage import coverage_of
+from gateway.model.envelope import envelope_of
 from gateway.model.model import ThermalModel
+from gateway.prepare import prepare
 from gateway.profile import Profile
 from gateway.recording import Recording, continued
 
@@ -186,6 +189,9 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
     extended = comparison.written.model
     if comparison.chosen == "identified":
         extended = model
+    else:
+        extended = _supported_region(extended, recordings, reidentified=comparison.chosen == "reidentified",
+                                     gap_policy=gap_policy)
     extended = replace(extended, info={**extended.info, "diagnosis": record})
     diag = Diagnosis(model=model, extended=extended, stack=stack, findings=findings, hypotheses=hyps, result=result,
                      results=results, options=options, adequacy=adequacy, comparison=comparison, reidentified=reid,
@@ -203,6 +209,26 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
 
 
 NONE_NAMED = "(none named)"
+
+
+def _supported_region(model: ThermalModel, recordings: Sequence[Recording], *, reidentified: bool,
+                      gap_policy: str) -> ThermalModel:
+    """``model`` with the envelope (and, when every path was identified again, the coverage) of what it was fitted on.
+
+    The written model was fitted on these recordings too: its plausibility envelope is the larger of the
+    identification's and theirs (the live gateway holds offsets beyond it, and a production day at 3x the
+    experiments' speed is now data, not an extrapolation). A re-identified model's coverage is the region all
+    of them span; a model with terms on frozen paths keeps the identification's coverage (its paths saw only
+    the experiments).
+    """
+    preps = [prepare(r, factors=model.factors, axes=model.axes, reference=model.reference, gap_policy=gap_policy,
+                     inputs=model.inputs) for r in recordings]
+    source = f"diagnosis: {len(recordings)} recordings"
+    env = envelope_of(model, ((p.du, p.y) for p in preps), window_s=recordings[0].period_s, source=source)
+    changes: dict[str, object] = {"envelope": model.envelope.merged(env) if model.envelope is not None else env}
+    if reidentified:
+        changes["coverage"] = coverage_of((p.du for p in preps), model.factors, source=source)
+    return replace(model, **changes)
 
 
 def missing_experiments(model: ThermalModel, stack: Stack) -> list[str]:
