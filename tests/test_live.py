@@ -251,3 +251,71 @@ def test_cnc_unreachable_at_start_then_back(tmp_path):
         assert cnc.update().applied_um["z"] > 1.0  # compensating the spindle's growth
     finally:
         rig.close()
+
+
+async def read_served(endpoint, window_index, keys):
+    """Wait until the gateway's OPC UA server shows window ``window_index``; then per key: (type definition,
+    EngineeringUnits, EURange, status name, value, source time)."""
+    from asyncua import Client
+
+    async with Client(endpoint, timeout=10) as client:
+        ns = await client.get_namespace_index("urn:cncgw")
+        for _ in range(250):
+            if await client.get_node(f"ns={ns};s=Health.WindowIndex").read_value() == window_index:
+                break
+            await asyncio.sleep(0.02)
+        out = {}
+        for key in keys:
+            node = client.get_node(f"ns={ns};s={key}")
+            typedef = (await client.get_node(await node.read_type_definition()).read_browse_name()).Name
+            props = {(await p.read_browse_name()).Name: await p.read_value() for p in await node.get_properties()}
+            d = await node.read_data_value(raise_on_bad_status=False)
+            out[key] = (typedef, props.get("EngineeringUnits"), props.get("EURange"), d.StatusCode.name,
+                        d.Value.Value, d.SourceTimestamp)
+        return out
+
+
+def test_an_opcua_client_sees_analog_items_and_the_status_go_good_held_bad_through_a_dropped_board(tmp_path):
+    from datetime import UTC, datetime
+
+    rig = Rig(tmp_path, opcua_port=0, live="gap_hold_max_s = 180.0")
+    keys = ("Factors.spindle_speed", "Factors.z_i_sq", "Estimate.z_um", "Compensation.Commanded.z_um")
+    try:
+        adc = rig.devices.adc_tcp
+        seen = []
+        with rig.gateway(tmp_path / "data") as gw:
+            for end_min, drop in ((62, False), (65, True), (70, True), (76, False)):
+                adc.faults.drop_replies = drop
+                gw.run_stepped(end_min * 60)
+                h = gw.health()
+                v = asyncio.run(read_served(gw.opcua.endpoint, h.last_window.index, keys))
+                seen.append((h, v))
+        for h, v in seen:
+            t = datetime.fromtimestamp(h.last_window.end_s, UTC)
+            assert {s[5] for s in v.values()} == {t}  # source time: the window's end (clock seconds)
+            assert {s[0] for s in v.values()} == {"AnalogItemType"}
+            eu, rng = v["Estimate.z_um"][1], v["Estimate.z_um"][2]
+            assert (eu.UnitId, eu.DisplayName.Text) == (13384, "\u00b5m")  # UNECE 4H
+            assert (rng.Low, rng.High) == (-rig.model.envelope.axes["z"].max_abs_um,
+                                           rig.model.envelope.axes["z"].max_abs_um)
+            assert (v["Factors.spindle_speed"][1].UnitId, v["Factors.spindle_speed"][1].DisplayName.Text) == (
+                5394509, "r/min")  # UNECE RPM
+            assert v["Factors.z_i_sq"][2].Low == pytest.approx(rig.model.reference["z_i_sq"])
+            assert v["Compensation.Commanded.z_um"][3] == "Good"  # what the writer holds is a fact
+        status = [{k: s[3] for k, s in v.items() if not k.startswith("Compensation")} for _, v in seen]
+        assert [set(s.values()) for s in status] == [{"Good"}, {"UncertainLastUsableValue"}, {"BadNoCommunication"},
+                                                     {"Good"}]
+        (good, v_good), (held, v_held), (bad, v_bad), (back, v_back) = seen
+        assert good.last_window.status == "good"
+        assert held.last_window.status == bad.last_window.status == "insufficient"
+        assert (held.estimate.inputs, bad.estimate.inputs) == ("held", "reference")  # gap_hold_max_s 180 s passed
+        assert v_good["Estimate.z_um"][4] == pytest.approx(good.estimate.estimate_um["z"])
+        assert v_good["Factors.spindle_speed"][4] == pytest.approx(good.factors["spindle_speed"])
+        # held: the last good window's factors (the board has been silent since minute 62), and the estimate on them
+        assert v_held["Factors.spindle_speed"][4] == pytest.approx(held.estimate.held_factors["spindle_speed"])
+        assert held.estimate.held_factors["spindle_speed"] == pytest.approx(good.factors["spindle_speed"])
+        assert v_held["Estimate.z_um"][4] == pytest.approx(held.estimate.estimate_um["z"])
+        assert all(s[4] is None for k, s in v_bad.items() if not k.startswith("Compensation"))  # no number when Bad
+        assert v_back["Estimate.z_um"][4] == pytest.approx(back.estimate.estimate_um["z"])
+    finally:
+        rig.close()

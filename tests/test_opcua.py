@@ -11,6 +11,8 @@ from __future__ import annotations
 import asyncio
 import math
 import threading
+from dataclasses import replace
+from datetime import UTC, datetime
 from types import MappingProxyType
 
 import pytest
@@ -20,7 +22,7 @@ from gateway.live.audit import Alarm, WriteEntry
 from gateway.live.compensation import WriterStatus
 from gateway.live.estimator import EstimateUpdate
 from gateway.live.health import GapStatus, Health
-from gateway.live.opcua_server import OpcUaServer
+from gateway.live.opcua_server import OpcUaServer, unit_of
 from gateway.model import load_model
 from gateway.profile import load_profile
 from gateway.profile.live import OpcUa
@@ -152,12 +154,15 @@ def test_shows_factors_estimates_compensation_and_health(server):
                 "Compensation.Verified", "Compensation.Writes", "Health.Alarms", "Health.AlarmCount",
                 "Health.Devices", "Health.SampleRateHz", "Health.MissedTicks", "Health.GapWindows",
                 "Factors.x_feed"]
-        return {k: await client.get_node(f"ns={ns};s={k}").read_value() for k in keys}
+        return {k: await client.get_node(f"ns={ns};s={k}").read_data_value(raise_on_bad_status=False) for k in keys}
 
-    v = asyncio.run(client_session(srv.endpoint, read))
+    dv = asyncio.run(client_session(srv.endpoint, read))
+    v = {k: d.Value.Value for k, d in dv.items()}
     assert v["Machine.Name"] == "sim-vmc"
     assert v["Factors.spindle_speed"] == 1000.0
-    assert math.isnan(v["Factors.x_feed"])  # not in the snapshot: never shown as a number
+    # not in the snapshot: never shown as a number; a Bad value is null (OPC 10000-4, 7.11)
+    assert (dv["Factors.x_feed"].StatusCode.name, v["Factors.x_feed"]) == ("BadNoCommunication", None)
+    assert {d.StatusCode.name for k, d in dv.items() if k != "Factors.x_feed"} == {"Good"}
     assert (v["Estimate.z_um"], v["Estimate.Window"], v["Estimate.Usable"]) == (-12.5, 42, True)
     assert (v["Compensation.Mode"], v["Compensation.Commanded.z_um"], v["Compensation.Applied.y_um"]) == (
         "dry-run", 12.5, -0.2)  # the mode node shows the profile's setting (the bundled profile: dry run)
@@ -226,3 +231,136 @@ def test_only_the_configured_security_policies_are_offered(server):
     eps = asyncio.run(client_session(srv.endpoint, endpoints))
     assert {e.SecurityPolicyUri.rsplit("#", 1)[-1] for e in eps} == {"None", "Basic256Sha256"}
     assert {t.TokenType.name for e in eps for t in e.UserIdentityTokens} == {"Anonymous", "UserName"}
+
+
+def test_unit_ids_follow_the_common_codes_as_the_spec_computes_them():
+    # UnitId values as the OPC Foundation's UNECE_to_OPCUA.csv lists them
+    assert {k: unit_of(k).unit_id for k in ("um", "rpm", "mm/min", "degC", "%")} == {
+        "um": 13384, "rpm": 5394509, "mm/min": 4732977, "degC": 4408652, "%": 20529}
+    assert unit_of("um").namespace == "http://www.opcfoundation.org/UA/units/un/cefact"
+    a2 = unit_of("A^2")  # Rec. 20 has no ampere squared: our own unit, not a UNECE id
+    assert (a2.namespace, a2.unit_id, a2.display) == ("urn:cncgw", -1, "A\u00b2")
+    assert (unit_of("furlong/min").unit_id, unit_of("furlong/min").display) == (-1, "furlong/min")
+
+
+async def analog_info(client, ns, keys):
+    """Per node: its type definition's name, EngineeringUnits, EURange (None when absent)."""
+    out = {}
+    for key in keys:
+        node = client.get_node(f"ns={ns};s={key}")
+        typedef = await client.get_node(await node.read_type_definition()).read_browse_name()
+        props = {(await p.read_browse_name()).Name: await p.read_value() for p in await node.get_properties()}
+        out[key] = (typedef.Name, props.get("EngineeringUnits"), props.get("EURange"))
+    return out
+
+
+def test_values_are_analog_items_with_unece_units_and_ranges_from_the_model_and_profile(server):
+    srv, _ = server
+    model, profile = srv.model, srv.profile
+    keys = ([f"Factors.{f.name}" for f in profile.factors] + [f"Estimate.{a}_um" for a in model.axes]
+            + [f"Compensation.{k}.{a.axis}_um" for k in ("Commanded", "Applied") for a in profile.compensation.axes]
+            + ["Health.CoveragePct"])
+    info = asyncio.run(client_session(srv.endpoint, lambda c, ns: analog_info(c, ns, keys)))
+    assert {t for t, _, _ in info.values()} == {"AnalogItemType"}
+    eu = {k: (u.NamespaceUri, u.UnitId, u.DisplayName.Text) for k, (_, u, _) in info.items()}
+    cefact = "http://www.opcfoundation.org/UA/units/un/cefact"
+    assert eu["Estimate.z_um"] == eu["Compensation.Applied.x_um"] == (cefact, 13384, "\u00b5m")
+    assert eu["Factors.spindle_speed"] == (cefact, 5394509, "r/min")
+    assert eu["Factors.x_feed"] == (cefact, 4732977, "mm/min")
+    assert eu["Factors.z_i_sq"] == ("urn:cncgw", -1, "A\u00b2")
+    assert eu["Health.CoveragePct"] == (cefact, 20529, "%")
+    rng = {k: (r.Low, r.High) for k, (_, _, r) in info.items()}
+    # the bundled model's envelope: z moved at most 17.04 um over the identification experiments
+    assert rng["Estimate.z_um"] == pytest.approx((-17.04, 17.04), abs=0.01)
+    assert all(rng[f"Estimate.{a}_um"] == (-model.envelope.axes[a].max_abs_um, model.envelope.axes[a].max_abs_um)
+               for a in model.axes)
+    # a factor: its reference plus the deviations identification covered (z_i_sq: 13.27 A^2 holding current)
+    assert rng["Factors.z_i_sq"] == pytest.approx((13.27, 23.15), abs=0.01)
+    assert rng["Factors.spindle_speed"] == pytest.approx((0.0, 1000.0))
+    assert rng["Compensation.Commanded.z_um"] == (-profile.compensation.limit_um, profile.compensation.limit_um)
+    assert rng["Health.CoveragePct"] == (0.0, 100.0)
+
+
+def served(srv, health, keys):
+    """Publish ``health``, wait until it is applied, read ``keys``: name -> (status name, value, source time)."""
+    before = srv.published
+    srv.publish(health)
+    published(srv, before + 1)
+
+    async def read(client, ns):
+        out = {}
+        for k in keys:
+            d = await client.get_node(f"ns={ns};s={k}").read_data_value(raise_on_bad_status=False)
+            out[k] = (d.StatusCode.name, d.Value.Value, d.SourceTimestamp)
+        return out
+
+    return asyncio.run(client_session(srv.endpoint, read))
+
+
+KEYS = ("Factors.spindle_speed", "Factors.z_i_sq", "Estimate.z_um", "Health.WindowStatus")
+
+
+def test_status_follows_the_window_good_held_bad_stale_and_times_are_the_windows(server):
+    srv, _ = server
+    t42 = datetime.fromtimestamp(43 * 60.0, UTC)
+    v = served(srv, HEALTH, KEYS)
+    assert v["Factors.spindle_speed"] == ("Good", 1000.0, t42)
+    assert v["Estimate.z_um"] == ("Good", -12.5, t42)
+    # window 43: the board did not answer; the gap policy held window 42's factors
+    w43 = window(43, factors={"spindle_speed": math.nan, "z_i_sq": math.nan}, status="insufficient", reads_ok=0)
+    held = replace(estimate(43, usable=False, reason="window 43 insufficient"), inputs="held",
+                   held_factors=MappingProxyType({"spindle_speed": 1000.0, "z_i_sq": 13.3}))
+    t43 = datetime.fromtimestamp(44 * 60.0, UTC)
+    v = served(srv, replace(HEALTH, clock_s=44 * 60.0, last_window=w43, estimate=held), KEYS)
+    assert v["Factors.spindle_speed"] == ("UncertainLastUsableValue", 1000.0, t43)
+    assert v["Estimate.z_um"] == ("UncertainLastUsableValue", -12.5, t43)
+    assert v["Health.WindowStatus"] == ("Good", "insufficient", t43)
+    # window 60: held too long (gap_hold_max_s): the estimate assumes the machine idle, no factor is known
+    w60 = replace(w43, index=60, start_s=60 * 60.0, end_s=61 * 60.0)
+    idle = replace(estimate(60, usable=False, reason="window 60 insufficient"), inputs="reference")
+    v = served(srv, replace(HEALTH, clock_s=61 * 60.0, last_window=w60, estimate=idle), KEYS)
+    assert v["Factors.spindle_speed"][:2] == v["Estimate.z_um"][:2] == ("BadNoCommunication", None)
+    assert v["Estimate.z_um"][2] == datetime.fromtimestamp(61 * 60.0, UTC)
+    # saturated: enough samples, none valid
+    v = served(srv, replace(HEALTH, clock_s=61 * 60.0, last_window=replace(w60, status="rejected"), estimate=idle),
+               KEYS)
+    assert v["Estimate.z_um"][:2] == ("BadSensorFailure", None)
+    # no window closed for longer than stale_after_s (150 s): the last good values are not served as Good
+    v = served(srv, replace(HEALTH, clock_s=43 * 60.0 + 151.0), KEYS)
+    assert v["Factors.spindle_speed"][:2] == v["Estimate.z_um"][:2] == ("BadOutOfService", None)
+    v = served(srv, HEALTH, KEYS)
+    assert v["Estimate.z_um"] == ("Good", -12.5, t42)
+    # not written (probe band too wide) is the writer's business: the estimate of good factors stays Good
+    wide = estimate(usable=False, reason="95 % band z +-3.28 um wider than probes.band_limit_um = 1 um")
+    v = served(srv, replace(HEALTH, estimate=wide), KEYS)
+    assert v["Estimate.z_um"] == ("Good", -12.5, t42)
+
+
+def test_a_nan_is_never_served_as_good(server):
+    srv, _ = server
+    nan_est = replace(estimate(), estimate_um=MappingProxyType({"x": -1.5, "y": math.nan, "z": -12.5}))
+    w = window(factors={"spindle_speed": math.nan, "z_i_sq": 13.3})
+    v = served(srv, replace(HEALTH, last_window=w, estimate=nan_est),
+               ("Estimate.y_um", "Estimate.z_um", "Factors.spindle_speed", "Factors.z_i_sq"))
+    assert v["Estimate.y_um"][:2] == v["Factors.spindle_speed"][:2] == ("BadNoCommunication", None)
+    assert (v["Estimate.z_um"][:2], v["Factors.z_i_sq"][:2]) == (("Good", -12.5), ("Good", 13.3))
+    held = replace(estimate(usable=False, reason="window 42 insufficient"),
+                   estimate_um=MappingProxyType({"x": -1.5, "y": math.nan, "z": -12.5}), inputs="held",
+                   held_factors=MappingProxyType({"spindle_speed": math.nan}))
+    v = served(srv, replace(HEALTH, last_window=replace(w, status="insufficient"), estimate=held),
+               ("Estimate.y_um", "Estimate.z_um", "Factors.spindle_speed"))
+    assert v["Estimate.y_um"][:2] == v["Factors.spindle_speed"][:2] == ("BadNoCommunication", None)  # nor Uncertain
+    assert v["Estimate.z_um"][:2] == ("UncertainLastUsableValue", -12.5)
+
+
+def test_before_the_first_window_every_value_waits_for_initial_data(pki):
+    profile = load_profile(PROFILES / "sim-vmc.toml")
+    model = load_model(PROFILES / "sim-vmc.model.toml")
+    srv = OpcUaServer(settings(pki, writable=False), profile=profile, model=model).start()
+    try:
+        v = served(srv, Health(machine="sim-vmc", clock_s=0.0), ("Estimate.z_um", "Factors.x_feed",
+                                                                 "Compensation.Commanded.z_um"))
+        assert {s for s, _, _ in v.values()} == {"BadWaitingForInitialData"}
+        assert {x for _, x, _ in v.values()} == {None}
+    finally:
+        srv.stop()

@@ -91,6 +91,12 @@ class EstimateUpdate:
     #: why this window's factors lie outside the region the identification covered ("" inside, or the model
     #: records none): the estimate extrapolates (gateway.model.coverage)
     outside_coverage: str = ""
+    #: what the estimator stepped on for this window: ``"window"``, its own factors (whatever ``usable`` says
+    #: about writing); ``"held"``, the window had no good factors and the gap policy held the last good
+    #: window's (``held_factors``, for at most ``gap_hold_max_s``); ``"reference"``, the machine assumed idle
+    inputs: str = "window"
+    #: the model's factors the estimator held in place of this window's (empty unless ``inputs == "held"``)
+    held_factors: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
 
     @property
     def band95_um(self) -> Mapping[str, float]:
@@ -132,15 +138,18 @@ class FactorHistory:
         self.last_index: int | None = None
         self.last_good_du = np.zeros(len(model.factors))
         self.last_good_end_s: float | None = None
+        self.last_good_factors: Mapping[str, float] = MappingProxyType({})
         self.gaps: list[Gap] = []
         self.filled_total = 0
 
-    def _fill_column(self, index: int) -> np.ndarray:
+    def holds(self, index: int) -> bool:
+        """Window ``index``, if it has no good factors, gets the last good window's (else the reference)."""
         end = (index + 1) * self.window_s
-        if (self.live.gap_policy == "hold" and self.last_good_end_s is not None
-                and end - self.last_good_end_s <= self.live.gap_hold_max_s + 1e-9):
-            return self.last_good_du.copy()
-        return np.zeros_like(self.last_good_du)
+        return (self.live.gap_policy == "hold" and self.last_good_end_s is not None
+                and end - self.last_good_end_s <= self.live.gap_hold_max_s + 1e-9)
+
+    def _fill_column(self, index: int) -> np.ndarray:
+        return self.last_good_du.copy() if self.holds(index) else np.zeros_like(self.last_good_du)
 
     def _note_gap(self, first: int, last: int, reason: str) -> Gap:
         gap = Gap(first=first, last=last, policy=self.live.gap_policy, reason=reason)
@@ -180,6 +189,7 @@ class FactorHistory:
             du = u - self.reference
             self.last_good_du = du
             self.last_good_end_s = record.end_s
+            self.last_good_factors = MappingProxyType({f: record.factors[f] for f in self.model.factors})
             cols.append(self._with_inputs(du, record.end_s, record))
         self.last_index = record.index
         return np.column_stack(cols), filled, reason
@@ -340,6 +350,7 @@ class Estimator:
             y = self.estimator.step(cols[:, k])
             self._stepped(record.index - cols.shape[1] + 1 + k)
         assert y is not None
+        inputs = "window" if not reason else "held" if self.history.holds(record.index) else "reference"
         if filled and not reason:
             gap = self.history.gaps[-1]
             log.warning("%s", gap.describe(self.window_s))
@@ -347,7 +358,9 @@ class Estimator:
                              next_um=self._predict(cols[:, -1]),
                              factors=MappingProxyType(dict(record.factors)), usable=not reason, reason=reason,
                              filled=filled, first_live=self.live_windows == 0, notes=record.notes,
-                             outside_coverage="" if reason else self.outside_coverage(cols[:, -1]))
+                             outside_coverage="" if reason else self.outside_coverage(cols[:, -1]),
+                             inputs=inputs,
+                             held_factors=self.history.last_good_factors if inputs == "held" else MappingProxyType({}))
         self.live_windows += 1
         self.last = upd
         return upd

@@ -38,7 +38,10 @@ import contextlib
 import logging
 import math
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from types import MappingProxyType
 from typing import Any
 
 from gateway.errors import GatewayError
@@ -52,6 +55,113 @@ log = logging.getLogger(__name__)
 NAMESPACE = "urn:cncgw"
 START_TIMEOUT_S = 30.0
 STOP_TIMEOUT_S = 10.0
+#: EUInformation.NamespaceUri of a unit from UNECE Recommendation 20 (OPC 10000-8, 5.6.3)
+UNECE_NAMESPACE = "http://www.opcfoundation.org/UA/units/un/cefact"
+
+
+@dataclass(frozen=True, slots=True)
+class Unit:
+    """An engineering unit as OPC UA's EUInformation carries it.
+
+    ``code``: the UNECE Rec. 20 common code (``""`` when Rec. 20 has none: the unit is then ours, namespace
+    ``urn:cncgw``, ``UnitId`` -1, as OPC 10000-8 says for a unit without an id).
+    """
+
+    code: str
+    display: str
+    description: str
+
+    @property
+    def unit_id(self) -> int:
+        """OPC 10000-8, 5.6.3: the common code's characters, 8 bits each, the first the most significant."""
+        if not self.code:
+            return -1
+        n = 0
+        for c in self.code:
+            n = (n << 8) | ord(c)
+        return n
+
+    @property
+    def namespace(self) -> str:
+        return UNECE_NAMESPACE if self.code else NAMESPACE
+
+
+#: profile and model unit spellings -> UNECE Rec. 20 (codes and symbols from the OPC Foundation's
+#: UNECE_to_OPCUA.csv). "rpm": RPM (level 1, rotational frequency, which a spindle speed is) rather than
+#: M46 (level 2, angular velocity). "A^2" (a mean of the squared current): Rec. 20 has no ampere squared (only
+#: H32, ampere squared second), so it is our own unit, never passed off as a UNECE one.
+UNITS: Mapping[str, Unit] = MappingProxyType({
+    "um": Unit("4H", "\u00b5m", "micrometre (micron)"),
+    "mm": Unit("MMT", "mm", "millimetre"),
+    "rpm": Unit("RPM", "r/min", "revolutions per minute"),
+    "mm/min": Unit("H81", "mm/min", "millimetre per minute"),
+    "A": Unit("AMP", "A", "ampere"),
+    "A^2": Unit("", "A\u00b2", "ampere squared: the mean of the squared current over a window"),
+    "degC": Unit("CEL", "\u00b0C", "degree Celsius"),
+    "K": Unit("KEL", "K", "kelvin"),
+    "Hz": Unit("HTZ", "Hz", "hertz"),
+    "%": Unit("P1", "%", "percent"),
+    "s": Unit("SEC", "s", "second"),
+})
+
+
+def unit_of(name: str) -> Unit:
+    """The EUInformation of a profile's unit; a spelling not in :data:`UNITS` is our own unit, shown as written."""
+    return UNITS.get(name) or Unit("", name, name)
+
+
+#: a window-derived value's OPC UA status (see :func:`estimate_status`)
+GOOD = "Good"
+HELD = "UncertainLastUsableValue"
+WAITING = "BadWaitingForInitialData"
+STALE = "BadOutOfService"
+NO_DATA = "BadNoCommunication"
+REJECTED = "BadSensorFailure"
+
+
+def _bad_window(status: str | None) -> str:
+    """A window whose factors drive nothing: too little data (a device not answering) or data not valid."""
+    return NO_DATA if status in (None, "insufficient") else REJECTED
+
+
+def estimate_status(h: Health) -> str:
+    """The StatusCode (name) of the estimate in ``h`` (and of its bands).
+
+    ``Good``: the estimate rests on the window's own good factors (an estimate the writer does not follow,
+    e.g. its probe band too wide, is still the model's estimate of good data). ``UncertainLastUsableValue``: the window
+    had no good factors and the gap policy held the last good window's (what OPC 10000-4 calls a last usable
+    value: whatever updated the inputs stopped doing so). Bad: ``BadWaitingForInitialData`` before the first
+    live window, ``BadOutOfService`` when no window has closed for ``[live] stale_after_s`` (the acquisition is
+    not running), ``BadNoCommunication`` for a window with too little data and nothing held (beyond
+    ``gap_hold_max_s``, or gap policy ``reference``: the estimate assumes the machine idle),
+    ``BadSensorFailure`` for a window whose data was not valid (saturated, not finite) and nothing held.
+    """
+    est, w = h.estimate, h.last_window
+    if est is None or w is None:
+        return WAITING
+    if h.stale:
+        return STALE
+    if est.inputs == "window":  # the window's own good factors (``usable`` is about writing, not this)
+        return GOOD
+    if est.inputs == "held":
+        return HELD
+    return _bad_window(w.status if w.index == est.index else None)
+
+
+def factor_status(h: Health) -> str:
+    """The StatusCode (name) of the last window's factors.
+
+    As :func:`estimate_status` for the window the estimate followed; a window the estimator has not taken yet
+    (a snapshot taken in between) is Good only when its status is.
+    """
+    est, w = h.estimate, h.last_window
+    if w is None:
+        return WAITING
+    if h.stale:
+        return STALE
+    if est is not None and est.index == w.index:
+        return estimate_status(h)
+    return GOOD if w.status == "good" else _bad_window(w.status)
 
 
 class OpcUaServer:
@@ -72,6 +182,32 @@ class OpcUaServer:
         self._nodes: dict[str, Any] = {}
         self._types: dict[str, Any] = {}
         self.published = 0
+
+    def ranges(self) -> dict[str, tuple[float, float]]:
+        """EURange of each analog variable that has one (node key -> (low, high)); the others are BaseAnalogType.
+
+        Estimates: +- the model's envelope (the largest displacement identification saw, per axis); their
+        95 % bands: 0 to that. Factors: the model's reference plus the deviations identification covered
+        (``[coverage.range]``). Offsets: +- ``[compensation] limit_um``. Coverage: 0-100 %.
+        """
+        out: dict[str, tuple[float, float]] = {}
+        env, cov = self.model.envelope, self.model.coverage
+        for a in self.model.axes:
+            e = env.axes.get(a) if env is not None else None
+            if e is not None:
+                out[f"Estimate.{a}_um"] = (-e.max_abs_um, e.max_abs_um)
+                out[f"Estimate.{a}_band95_um"] = (0.0, e.max_abs_um)
+        for f in self.profile.factors:
+            r = cov.ranges.get(f.name) if cov is not None else None
+            if r is not None:
+                ref = self.model.reference.get(f.name, 0.0)
+                out[f"Factors.{f.name}"] = (ref + r[0], ref + r[1])
+        limit = self.profile.compensation.limit_um
+        for c in self.profile.compensation.axes:
+            out[f"Compensation.Commanded.{c.axis}_um"] = (-limit, limit)
+            out[f"Compensation.Applied.{c.axis}_um"] = (-limit, limit)
+        out["Health.CoveragePct"] = (0.0, 100.0)
+        return out
 
     @property
     def endpoint(self) -> str:
@@ -167,6 +303,8 @@ class OpcUaServer:
 
         root = await server.nodes.objects.add_object(ua.NodeId("cncgw", idx), ua.QualifiedName("cncgw", idx))
 
+        ranges = self.ranges()
+
         async def var(folder: Any, key: str, value: Any, vtype: Any, description: str = "") -> None:
             node = await folder.add_variable(ua.NodeId(key, idx), ua.QualifiedName(key.split(".")[-1], idx),
                                              ua.Variant(value, vtype))
@@ -176,6 +314,45 @@ class OpcUaServer:
             self._nodes[key] = node
             self._types[key] = vtype
 
+        async def analog(folder: Any, key: str, unit: str, description: str = "") -> None:
+            """A Double of AnalogItemType (BaseAnalogType without a range) with its EngineeringUnits and EURange.
+
+            asyncua's add_variable always types a variable BaseDataVariableType, so the node is added with
+            the type definition here; the properties are added as the type declares them (HasProperty).
+            """
+            item = ua.AddNodesItem()
+            item.RequestedNewNodeId = ua.NodeId(key, idx)
+            item.BrowseName = ua.QualifiedName(key.split(".")[-1], idx)
+            item.NodeClass = ua.NodeClass.Variable
+            item.ParentNodeId = folder.nodeid
+            item.ReferenceTypeId = ua.NodeId(ua.ObjectIds.HasComponent)
+            rng = ranges.get(key)
+            item.TypeDefinition = ua.NodeId(ua.ObjectIds.AnalogItemType if rng else ua.ObjectIds.BaseAnalogType)
+            attrs = ua.VariableAttributes()
+            attrs.DisplayName = ua.LocalizedText(key.split(".")[-1])
+            attrs.Description = ua.LocalizedText(description or key.split(".")[-1])
+            attrs.DataType = ua.NodeId(ua.ObjectIds.Double)
+            attrs.Value = ua.Variant(math.nan, D)
+            attrs.ValueRank = ua.ValueRank.Scalar
+            attrs.AccessLevel = attrs.UserAccessLevel = ua.AccessLevel.CurrentRead.mask
+            item.NodeAttributes = attrs
+            added = await server.iserver.isession.add_nodes([item])
+            added[0].StatusCode.check()
+            node = server.get_node(added[0].AddedNodeId)
+            u = unit_of(unit)
+            eu = ua.EUInformation(NamespaceUri=u.namespace, UnitId=u.unit_id, DisplayName=ua.LocalizedText(u.display),
+                                  Description=ua.LocalizedText(u.description))
+            await node.add_property(ua.NodeId(f"{key}.EngineeringUnits", idx), ua.QualifiedName("EngineeringUnits", 0),
+                                    eu, datatype=ua.NodeId(ua.ObjectIds.EUInformation))
+            if rng:
+                await node.add_property(ua.NodeId(f"{key}.EURange", idx), ua.QualifiedName("EURange", 0),
+                                        ua.Range(Low=float(rng[0]), High=float(rng[1])),
+                                        datatype=ua.NodeId(ua.ObjectIds.Range))
+            await node.write_value(ua.DataValue(ua.Variant(math.nan, D),
+                                                StatusCode=ua.StatusCode(ua.StatusCodes.BadWaitingForInitialData)))
+            self._nodes[key] = node
+            self._types[key] = D
+
         async def folder(parent: Any, key: str) -> Any:
             return await parent.add_object(ua.NodeId(key, idx), ua.QualifiedName(key.split(".")[-1], idx))
 
@@ -184,14 +361,14 @@ class OpcUaServer:
         await var(machine, "Machine.Name", self.profile.name, S)
         factors = await folder(root, "Factors")
         for f in self.profile.factors:
-            await var(factors, f"Factors.{f.name}", math.nan, D, f"{f.description} [{f.unit}]".strip())
+            await analog(factors, f"Factors.{f.name}", f.unit, f"{f.description} [{f.unit}]".strip())
         est = await folder(root, "Estimate")
         for a in self.model.axes:
-            await var(est, f"Estimate.{a}_um", 0.0, D, f"estimated thermal displacement along {a} [um]")
+            await analog(est, f"Estimate.{a}_um", "um", f"estimated thermal displacement along {a} [um]")
         if self.profile.probes.enabled:  # the model updated by probes: every estimate has its band
             for a in self.model.axes:
-                await var(est, f"Estimate.{a}_band95_um", math.nan, D,
-                          f"95 % half-band of the estimate along {a}: the true displacement is within +- this [um]")
+                await analog(est, f"Estimate.{a}_band95_um", "um",
+                             f"95 % half-band of the estimate along {a}: the true displacement is within +- this [um]")
         await var(est, "Estimate.Window", -1, I64)
         await var(est, "Estimate.Usable", False, B)
         await var(est, "Estimate.Reason", "", S)
@@ -200,8 +377,9 @@ class OpcUaServer:
         commanded = await folder(comp, "Compensation.Commanded")
         applied = await folder(comp, "Compensation.Applied")
         for a in self.profile.compensation.axes:
-            await var(commanded, f"Compensation.Commanded.{a.axis}_um", 0.0, D)
-            await var(applied, f"Compensation.Applied.{a.axis}_um", math.nan, D)
+            await analog(commanded, f"Compensation.Commanded.{a.axis}_um", "um", f"offset commanded along {a.axis}")
+            await analog(applied, f"Compensation.Applied.{a.axis}_um", "um",
+                         f"offset the CNC showed along {a.axis} when last read back")
         await var(comp, "Compensation.LastWriteTimeS", math.nan, D)
         await var(comp, "Compensation.Verified", False, B)
         await var(comp, "Compensation.Writes", 0, I64)
@@ -220,7 +398,7 @@ class OpcUaServer:
         await var(health, "Health.WindowStatus", "", S, "good, insufficient (too little data) or rejected "
                                                        "(saturated or not finite)")
         await var(health, "Health.WindowQuality", "", S, "coverage, samples, devices in error, why not good")
-        await var(health, "Health.CoveragePct", math.nan, D, "lowest channel coverage of the last window [%]")
+        await analog(health, "Health.CoveragePct", "%", "lowest channel coverage of the last window [%]")
         await var(health, "Health.SamplesTaken", 0, I64)
         await var(health, "Health.SamplesExpected", 0, I64)
 
@@ -251,52 +429,69 @@ class OpcUaServer:
                 self.published += 1
 
     async def _apply(self, h: Health) -> None:
-        values: dict[str, Any] = {}
-        for name, v in h.factors.items():
-            values[f"Factors.{name}"] = float(v)
-        est = h.estimate
-        if est is not None:
-            for a, v in est.estimate_um.items():
-                values[f"Estimate.{a}_um"] = float(v)
-            for a, v in est.band95_um.items():
-                if f"Estimate.{a}_band95_um" in self._nodes:
-                    values[f"Estimate.{a}_band95_um"] = float(v)
-            values["Estimate.Window"] = est.index
-            values["Estimate.Usable"] = est.usable
-            values["Estimate.Reason"] = est.reason
-        comp = h.compensation
-        if comp is not None:
-            for a, v in comp.commanded_um.items():
-                values[f"Compensation.Commanded.{a}_um"] = float(v)
-            lw = comp.last_write
-            if lw is not None:
-                for a, v in lw.applied_um.items():
-                    values[f"Compensation.Applied.{a}_um"] = float(v)
-                values["Compensation.LastWriteTimeS"] = float(lw.t_s)
-                values["Compensation.Verified"] = lw.verified
-            values["Compensation.Writes"] = comp.writes
-        alarms = [f"{a.name}: {a.message}" for a in h.alarms]
-        values["Health.Alarms"] = alarms
-        values["Health.AlarmCount"] = len(alarms)
-        values["Health.Devices"] = [f"{d.device}: {d.state}" for d in h.devices]
-        values["Health.SampleRateHz"] = h.sample_rate_hz
-        w = h.last_window
-        if w is not None:
-            values["Health.MissedTicks"] = w.missed_ticks
-            values["Health.WindowIndex"] = w.index
-            values["Health.WindowStatus"] = w.status
-            values["Health.WindowQuality"] = w.quality()
-            values["Health.CoveragePct"] = 100.0 * w.coverage
-            values["Health.SamplesTaken"] = w.samples_taken
-            values["Health.SamplesExpected"] = w.samples_expected
-        values["Health.GapWindows"] = h.gaps.filled_windows
-        values["Health.UptimeS"] = h.uptime_s
+        """Show snapshot ``h``: every window-derived value with its status and the window's end as source time."""
         from asyncua import ua
 
-        for key, v in values.items():
+        w, est, comp = h.last_window, h.estimate, h.compensation
+        # (value, status name, source time in clock seconds or None for "now")
+        values: dict[str, tuple[Any, str, float | None]] = {}
+        f_status = factor_status(h)
+        f_time = w.end_s if w is not None else None
+        held = est.held_factors if est is not None else {}
+        for f in self.profile.factors:
+            if w is None:
+                continue
+            v = w.factors.get(f.name, math.nan) if f_status == GOOD else held.get(f.name, math.nan)
+            values[f"Factors.{f.name}"] = (v, f_status, f_time)
+        if est is not None:
+            e_status, e_time = estimate_status(h), est.end_s
+            for a, v in est.estimate_um.items():
+                values[f"Estimate.{a}_um"] = (v, e_status, e_time)
+            for a, v in est.band95_um.items():
+                values[f"Estimate.{a}_band95_um"] = (v, e_status, e_time)
+            values["Estimate.Window"] = (est.index, GOOD, e_time)
+            values["Estimate.Usable"] = (est.usable, GOOD, e_time)
+            values["Estimate.Reason"] = (est.reason, GOOD, e_time)
+        if comp is not None:
+            for a, v in comp.commanded_um.items():  # what the writer holds now, whatever the window
+                values[f"Compensation.Commanded.{a}_um"] = (v, GOOD, f_time)
+            lw = comp.last_write
+            if lw is not None:  # read back from the CNC at the write's time
+                for a, v in lw.applied_um.items():
+                    values[f"Compensation.Applied.{a}_um"] = (v, GOOD, lw.t_s)
+                values["Compensation.LastWriteTimeS"] = (lw.t_s, GOOD, lw.t_s)
+                values["Compensation.Verified"] = (lw.verified, GOOD, lw.t_s)
+            values["Compensation.Writes"] = (comp.writes, GOOD, None)
+        alarms = [f"{a.name}: {a.message}" for a in h.alarms]
+        values["Health.Alarms"] = (alarms, GOOD, None)
+        values["Health.AlarmCount"] = (len(alarms), GOOD, None)
+        values["Health.Devices"] = ([f"{d.device}: {d.state}" for d in h.devices], GOOD, None)
+        values["Health.SampleRateHz"] = (h.sample_rate_hz, GOOD, None)
+        if w is not None:
+            values["Health.MissedTicks"] = (w.missed_ticks, GOOD, w.end_s)
+            values["Health.WindowIndex"] = (w.index, GOOD, w.end_s)
+            values["Health.WindowStatus"] = (w.status, GOOD, w.end_s)
+            values["Health.WindowQuality"] = (w.quality(), GOOD, w.end_s)
+            values["Health.CoveragePct"] = (100.0 * w.coverage, GOOD, w.end_s)
+            values["Health.SamplesTaken"] = (w.samples_taken, GOOD, w.end_s)
+            values["Health.SamplesExpected"] = (w.samples_expected, GOOD, w.end_s)
+        values["Health.GapWindows"] = (h.gaps.filled_windows, GOOD, None)
+        values["Health.UptimeS"] = (h.uptime_s, GOOD, None)
+
+        now = datetime.now(UTC)
+        for key, (v, status, t_s) in values.items():
             node = self._nodes.get(key)
-            if node is not None:
-                await node.write_value(ua.Variant(v, self._types[key]))
+            if node is None:
+                continue
+            vtype = self._types[key]
+            if vtype == ua.VariantType.Double:
+                v = float(v)
+                if not math.isfinite(v) and not status.startswith("Bad"):
+                    status = NO_DATA  # no number: never served as Good or Uncertain
+            source = now if t_s is None else datetime.fromtimestamp(t_s, UTC)
+            await node.write_value(ua.DataValue(ua.Variant(v, vtype),
+                                                StatusCode=ua.StatusCode(getattr(ua.StatusCodes, status)),
+                                                SourceTimestamp=source, ServerTimestamp=now))
 
 
 def _anonymous_reads_only() -> Any:
