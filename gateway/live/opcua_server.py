@@ -14,7 +14,7 @@ no more than an anonymous session (refused too when anonymous sessions are off).
 
 Address space (namespace ``urn:cncgw``, string node ids, so a client can read ``ns=2;s=Estimate.z_um``):
 
-- ``Machine.Name``; ``Factors.<factor>`` (last window's factor, its unit in the description);
+- ``Machine.Name``; ``Factors.<factor>`` (last window's factor, or the one held over a gap);
 - ``Estimate.<axis>_um``, ``Estimate.Window``, ``Estimate.Usable``, ``Estimate.Reason``; with ``[probes]``
   also ``Estimate.<axis>_band95_um`` (the 95 % half-band of the estimate updated by probes);
 - ``Compensation.Mode`` (``write``/``dry-run``), ``Compensation.Commanded.<axis>_um``,
@@ -26,6 +26,11 @@ Address space (namespace ``urn:cncgw``, string node ids, so a client can read ``
 - the last window's quality: ``Health.WindowIndex``, ``Health.WindowStatus`` (``good``, ``insufficient``,
   ``rejected``), ``Health.WindowQuality`` (one line: coverage, samples, devices in error and their error,
   why it is not good), ``Health.CoveragePct``, ``Health.SamplesTaken``, ``Health.SamplesExpected``.
+
+Factors, estimates, bands, offsets and ``Health.CoveragePct`` are ``AnalogItemType`` (``BaseAnalogType``
+without a known range) with ``EngineeringUnits`` (:data:`UNITS`) and ``EURange`` (:meth:`OpcUaServer.ranges`);
+their StatusCode comes from the window (:func:`estimate_status`, :func:`factor_status`), their source
+timestamp is the window's end. A number that is not finite is never served Good or Uncertain.
 
 The server runs its own asyncio loop in a thread; :meth:`OpcUaServer.publish` (any thread) hands it a
 health snapshot, applied by a publisher task. Both tasks run in one ``TaskGroup``; every wait has a timeout.
