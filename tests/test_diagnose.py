@@ -330,3 +330,26 @@ def test_extension_gives_a_delayed_part_its_own_path_and_keeps_input_names_apart
     assert ext.path("z", "speed").terms == model.path("z", "speed").terms  # the identified path is untouched
     est = estimate(ext, rec, align="none").estimated[0]
     assert np.abs(est - (stack.base[0] + sum(t.contribution for t in terms))).max() < 1e-9
+
+
+def test_a_term_that_moves_an_axis_more_than_it_moved_is_not_physics():
+    """A significant, relevant term whose contribution exceeds the axis's measured peak cancels against the paths.
+
+    Measured on a plant variant where the effect was absorbed: a higher order on a feed path with 23 um RMS on
+    an axis that moved 19 um at most was accepted, and the written model predicted a fresh day worse.
+    """
+    from gateway.diagnose.search import AxisEvidence, Trial, _judge
+
+    def evidence(effect_um: float) -> AxisEvidence:
+        return AxisEvidence(axis="y", sse_before=10.0, sse_after=5.0, p=0.001, setting=object(), gains=np.ones(1),
+                            gains_sd=np.ones(1), params_sd={}, effect_rms_um=effect_um, relevance_um=0.4,
+                            fit=None, peak_um=19.0)
+
+    hyp = type("H", (), {"key": "higher_order:x_feed"})()
+    ok = Trial(hypothesis=hyp, round=1, evidence={"y": evidence(6.0)}, p=0.001, p_holm=0.001)
+    assert _judge(ok, Options()) == "passes"
+    assert ok.axes == ("y",)
+    cancels = Trial(hypothesis=hyp, round=1, evidence={"y": evidence(23.1)}, p=0.001, p_holm=0.001)
+    assert _judge(cancels, Options()).startswith("significant but on no axis relevant")
+    assert cancels.axes == ()
+    assert "exceeds the axis's whole measured displacement (peak 19 um)" in cancels.evidence["y"].note

@@ -121,7 +121,7 @@ def test_the_room_is_named_and_the_rewritten_model_predicts_a_fresh_day(plant_da
 
 
 def test_the_rewritten_model_covers_and_bounds_the_days_it_was_fitted_on(plant_data, diagnosed):
-    exps, days, _, base = plant_data
+    _, days, _, base = plant_data
     d = diagnosed
     assert d.comparison.chosen == "reidentified"
     # the experiments ran the spindle up to 1000 rpm, the days to 2500: the identified model's coverage ends at

@@ -65,6 +65,7 @@ class AxisEvidence:
     effect_rms_um: float
     relevance_um: float
     fit: GridFit
+    peak_um: float = math.inf  # the axis's own largest measured |displacement|
     included: bool = False
     note: str = ""
 
@@ -178,6 +179,7 @@ class _Axis:
     fixed: list[np.ndarray]
     relevance_um: float
     artefacts: list[np.ndarray]
+    peak_um: float = math.inf
     _fold: Fold | None = None
 
     @property
@@ -210,15 +212,15 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
     offsets = stack.per_recording()
     # relevance is judged against the machine's thermal displacement, the largest peak of any axis: an
     # axis that barely moves must not make a tenth of a micrometre look important
-    peaks = []
+    peaks = {}
     for i in range(len(stack.axes)):
         ok = np.isfinite(stack.y[i])
         if ok.any():
             # the machine's, not the model's: an unfit model that predicts ten times what was measured must
             # not raise the bar for what is relevant
             meas = stack.y[i][ok] - np.median(stack.y[i][ok][:10])
-            peaks.append(float(np.max(np.abs(meas))))
-    relevance = max(options.min_effect_share * max(peaks, default=0.0), options.min_effect_um)
+            peaks[i] = float(np.max(np.abs(meas)))
+    relevance = max(options.min_effect_share * max(peaks.values(), default=0.0), options.min_effect_um)
     for i, name in enumerate(stack.axes):
         ok = (block != -1) & np.isfinite(stack.y[i])
         rows = np.flatnonzero(ok)
@@ -228,7 +230,7 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
         arts = [c for c in artefacts.get(name, [])]
         fixed = [c[rows] for c in offsets if np.any(c[rows])] + [c[rows] for c in arts]
         fixed += [c[rows] for c in corrections if np.any(c[rows])]
-        axes.append(_Axis(i, name, rows, r, block[rows], fixed, relevance, arts))
+        axes.append(_Axis(i, name, rows, r, block[rows], fixed, relevance, arts, peak_um=peaks.get(i, math.inf)))
     trials: list[Trial] = []
     accepted: list[Trial] = []
     remaining = list(hypotheses)
@@ -326,7 +328,7 @@ def _evidence(stack: Stack, axes: Sequence[_Axis], h: Hypothesis) -> dict[str, A
             axis=ax.name, sse_before=before, sse_after=float(fit.held.sum()), p=one_sided_p(fit.without - fit.held),
             setting=best, gains=gains, gains_sd=_gains_sd(fit, n_phys),
             params_sd=_params_sd(fit, grid) if best else {}, effect_rms_um=effect, relevance_um=ax.relevance_um,
-            fit=fit)
+            fit=fit, peak_um=ax.peak_um)
     return out
 
 
@@ -341,6 +343,11 @@ def _judge(t: Trial, o: Options) -> str:
     for e in t.evidence.values():
         if e.setting is None:
             e.note = "no plausible setting"
+        elif e.effect_rms_um > e.peak_um:
+            # physics the data show moves the axis by at most what was measured; a term that moves it more
+            # cancels against the paths (their corrections, co-varying factors) and predicts nothing
+            e.note = (f"contribution {e.effect_rms_um:.3g} um RMS exceeds the axis's whole measured displacement "
+                      f"(peak {e.peak_um:.3g} um): it cancels against the paths, it is not what the data show")
         elif not e.p < o.alpha_axis:
             e.note = f"blocks do not improve consistently (p = {e.p:.2g})"
         elif e.gain < o.min_gain:
