@@ -4,12 +4,16 @@ Modelled on python-can's ``BusABC``: the base class owns the public calls (:meth
 :meth:`Driver.read`, an idempotent :meth:`Driver.close`, the context manager and a warning when a driver
 is dropped open); a protocol overrides three small hooks (``_connect``, ``_read_raw``, ``_disconnect``)
 and two class methods the profile loader calls (``parse_device_options``, ``parse_channel_address``).
+A protocol that can write (the CNC's compensation registers over Modbus) also overrides ``_write_raw``
+(and ``_write_what`` for messages); :meth:`Driver.write` is its public call, owned here like ``read()``.
 
-Errors: anything a hook raises is closed over (the transport is closed, so the next ``open()`` starts
-clean: pymodbus keeps a dead socket until ``close()``) and re-raised as a
-:class:`~gateway.errors.DriverError` (or :class:`~gateway.errors.DeviceTimeout`) naming the device.
-Timing, retries of the whole device, error counters and off-scan back-off are not here: the gateway's
-runner (:mod:`gateway.runner`) wraps every driver the same way.
+Errors: anything a read or write hook raises is closed over (the transport is closed, so the next call
+reconnects and starts clean: pymodbus keeps a dead socket until ``close()``) and re-raised as a
+:class:`~gateway.errors.DriverError` (or :class:`~gateway.errors.DeviceTimeout`) naming the device. A
+:class:`~gateway.errors.DeviceRefused` (the device answered a write with a refusal) passes through with the
+link left open: the device is there, it said no. Timing, retries of the whole device, error counters and
+off-scan back-off are not here: the gateway's runner (:mod:`gateway.runner`) wraps every driver the same
+way, with the one back-off formula below (:func:`backoff_delay_s`).
 
 Quality: every value comes with a :class:`Quality`. ``GOOD`` and ``SATURATED`` values are used (a
 saturated converter reads a bound, so it is counted and reported); ``STALE`` (no fresh data, e.g. no CAN
@@ -30,7 +34,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from gateway.clock import Clock, RealClock
-from gateway.errors import DeviceTimeout, DriverError
+from gateway.errors import DeviceRefused, DeviceTimeout, DriverError
 from gateway.tomlcheck import describe
 
 
@@ -225,6 +229,17 @@ class Driver(abc.ABC):
     def _disconnect(self) -> None:
         """Close the transport; must not raise (called after errors too)."""
 
+    def _write_raw(self, target: Any, value: Any) -> None:
+        """Write ``value`` to ``target`` (an address in the protocol's own terms); drivers that write override it.
+
+        Raise :class:`~gateway.errors.DeviceRefused` when the device answers with a refusal.
+        """
+        raise DriverError(f'device "{self.name}" ({self.kind}): this driver does not write')
+
+    def _write_what(self, target: Any, value: Any) -> str:
+        """The write, for messages (``heartbeat fc6 120``)."""
+        return f"write to {target!r}"
+
     # -- the public calls --------------------------------------------------------------------------------
     @property
     def is_open(self) -> bool:
@@ -252,18 +267,34 @@ class Driver(abc.ABC):
             self.open()
         t = self.clock.now()
         self.scan_errors = []
+        values, quality = self._transaction("read", self._read_raw)
+        return Reading(t_s=t, values=tuple(values), quality=tuple(quality), errors=tuple(self.scan_errors))
+
+    def write(self, target: Any, value: Any) -> None:
+        """Write ``value`` to ``target`` (connecting first when the link is closed).
+
+        On a failure the transport is closed (the next call reconnects) and :class:`DriverError` (or
+        :class:`DeviceTimeout`) raised; a :class:`DeviceRefused` leaves the link open.
+        """
+        if not self._is_open:
+            self.open()
+        self._transaction(self._write_what(target, value), lambda: self._write_raw(target, value))
+
+    def _transaction(self, what: str, call: Callable[[], Any]) -> Any:
+        """``call()`` with the errors every read and write maps the same way (see the module docstring)."""
         try:
-            values, quality = self._read_raw()
+            return call()
+        except DeviceRefused:
+            raise  # the device answered: the link is fine
         except DriverError:
             self._drop()
             raise
         except TimeoutError as exc:
             self._drop()
             raise DeviceTimeout(f'device "{self.name}" ({self.kind}): no answer: {_describe(exc)}') from exc
-        except Exception as exc:
+        except Exception as exc:  # every transport has its own exceptions: name the device, keep the cause
             self._drop()
-            raise DriverError(f'device "{self.name}" ({self.kind}): read failed: {_describe(exc)}') from exc
-        return Reading(t_s=t, values=tuple(values), quality=tuple(quality), errors=tuple(self.scan_errors))
+            raise DriverError(f'device "{self.name}" ({self.kind}): {what} failed: {_describe(exc)}') from exc
 
     def close(self) -> None:
         """Close the transport (idempotent); the driver cannot be opened again."""
@@ -333,12 +364,20 @@ class SharedLine:
             self._retry.pop(unit, None)
         if failed and not answered:
             raise failed[0][1]
-        opt = driver.options
         for unit, exc in failed:
             n = self._failures[unit] = self._failures.get(unit, 0) + 1
-            self._retry[unit] = now + min(opt.backoff_s * 2.0 ** min(n - 1, 30), opt.backoff_max_s)
+            self._retry[unit] = now + backoff_delay_s(driver.options, n - 1)
             self._why[unit] = str(exc)
             driver.scan_errors.append(f"{exc} ({label(unit)} off-scan; the line's other units are read on)")
+
+
+def backoff_delay_s(options: DeviceOptions, doublings: int) -> float:
+    """How long a failing device (or unit) stays off-scan: ``backoff_s`` doubled, capped at ``backoff_max_s``.
+
+    ``doublings``: how many times (failures beyond the first that took it off-scan); the runner adds its
+    jitter on top, a shared line's units go without.
+    """
+    return min(options.backoff_s * 2.0 ** min(max(doublings, 0), 30), options.backoff_max_s)
 
 
 def _describe(exc: BaseException) -> str:

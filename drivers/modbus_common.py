@@ -16,22 +16,29 @@ any device's. A raw value at the
 limit of an integer type is flagged ``SATURATED`` (a converter at over-range sits there); a NaN float is
 ``BAD``. pymodbus clients are not thread-safe: a driver and its client belong to the one thread that
 samples the device.
+
+Writes (:meth:`drivers.base.Driver.write` with a :class:`RegisterWrite`): one coil (fc5), one register
+(fc6) or a block of contiguous registers (fc16) in one request, so a device that refuses one value
+refuses the whole block; a refusal is a :class:`~gateway.errors.DeviceRefused`. Raw blocks outside the
+channel scan (a block a CNC macro writes) are read with :meth:`ModbusDriver.read_registers`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from drivers.base import Driver, Quality, SharedLine, parse_scaling, unpack_words
-from gateway.errors import DeviceTimeout, DriverError
+from gateway.errors import DeviceRefused, DeviceTimeout, DriverError
 
 DATA_TYPES = ("int16", "uint16", "int32", "uint32", "float32")
 ORDERS = ("big", "little")
 FUNCTIONS = (3, 4)
+#: write functions: one coil, one register, a block of registers
+WRITE_FUNCTIONS = (5, 6, 16)
 MAX_REGISTERS = 125  # per read request (Modbus application protocol, 6.3/6.4)
 _WORDS = {"int16": 1, "uint16": 1, "int32": 2, "uint32": 2, "float32": 2}
 #: raw values a converter reports when it sits at its limit (unsigned zero is a normal reading)
@@ -67,6 +74,24 @@ class RegisterAddress:
             lo, hi = _SATURATED[self.data_type]
             quality = Quality.SATURATED if raw in (lo, hi) else Quality.GOOD
         return raw * self.scale + self.offset, quality
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class RegisterWrite:
+    """Where a write goes: a coil (fc5), one register (fc6) or registers from ``address`` on (fc16).
+
+    The value written: a bool (fc5), an int (fc6), a sequence of at most 123 ints (fc16). ``label`` says
+    what the write is for in messages (``heartbeat fc6 120``); ``unit_id`` ``None``: the device's.
+    """
+
+    function: int
+    address: int
+    label: str = ""
+    unit_id: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.function not in WRITE_FUNCTIONS:
+            raise ValueError(f"a Modbus write is function 5, 6 or 16. Got {self.function}")
 
 
 def parse_register_address(table: Any) -> RegisterAddress | None:
@@ -202,28 +227,75 @@ class ModbusDriver(Driver):
         return values, quality
 
     def _read_request(self, req: Request, values: list[float], quality: list[Quality]) -> None:
+        regs = self._read_words(req, describe_request(req, with_unit=self._several_units))
+        for i, first in req.members:
+            a = self.addresses[i]
+            values[i], quality[i] = a.decode(regs[first:first + a.n_registers])
+
+    def _read_words(self, req: Request, what: str) -> list[int]:
+        client = self._client
+        call = client.read_input_registers if req.function == 4 else client.read_holding_registers
+        rr = self._answer(what, lambda: call(req.start, count=req.count, device_id=req.unit))
+        if rr.isError():
+            raise DriverError(f'device "{self.name}" ({self.kind}): {what} answered with exception '
+                              f"{_exception(rr)}")
+        regs = rr.registers
+        if len(regs) < req.count:
+            raise DriverError(f'device "{self.name}" ({self.kind}): {what}: '
+                              f"expected {req.count} registers, got {len(regs)}")
+        return list(regs[:req.count])
+
+    def _answer(self, what: str, call: Callable[[], Any]) -> Any:
+        """One request's answer; no valid answer (pymodbus gave up after its retries) is a :class:`DeviceTimeout`."""
         from pymodbus.exceptions import ModbusIOException
 
-        call = self._client.read_input_registers if req.function == 4 else self._client.read_holding_registers
-        what = describe_request(req, with_unit=self._several_units)
         try:
-            rr = call(req.start, count=req.count, device_id=req.unit)
+            return call()
         except ModbusIOException as exc:
             opt = self.options
             raise DeviceTimeout(
                 f'device "{self.name}" ({self.kind}): no valid answer to {what} within {opt.timeout_s:g} s x '
                 f"{opt.retries + 1} attempt{'s' if opt.retries else ''}: {exc}") from exc
+
+    # -- beyond the channel scan ----------------------------------------------------------------------------
+    def read_registers(self, address: int, count: int, *, function: int = 4) -> list[int]:
+        """``count`` raw registers from ``address`` in one request, outside the channel scan.
+
+        Errors as :meth:`read`'s (the link is closed and reopened on the next call).
+        """
+        if function not in FUNCTIONS:
+            raise ValueError(f"function must be one of {FUNCTIONS}. Got {function}")
+        if not 1 <= count <= MAX_REGISTERS:
+            raise ValueError(f"count must be 1..{MAX_REGISTERS}. Got {count}")
+        if not self.is_open:
+            self.open()
+        req = Request(function=function, start=address, count=count, members=(), unit=self.options.unit_id)
+        what = describe_request(req)
+        return self._transaction(what, lambda: self._read_words(req, what))
+
+    def _write_raw(self, target: RegisterWrite, value: Any) -> None:
+        client, what = self._client, self._write_what(target, value)
+        unit = self.options.unit_id if target.unit_id is None else target.unit_id
+        if target.function == 16:
+            rr = self._answer(what, lambda: client.write_registers(target.address, values=list(value),
+                                                                    device_id=unit))
+        elif target.function == 6:
+            rr = self._answer(what, lambda: client.write_register(target.address, int(value), device_id=unit))
+        else:
+            rr = self._answer(what, lambda: client.write_coil(target.address, bool(value), device_id=unit))
         if rr.isError():
-            code = getattr(rr, "exception_code", None)
-            raise DriverError(f'device "{self.name}" ({self.kind}): {what} answered with exception {code} '
-                              f"({_EXCEPTIONS.get(code, 'unknown')})")
-        regs = rr.registers
-        if len(regs) < req.count:
-            raise DriverError(f'device "{self.name}" ({self.kind}): {what}: '
-                              f"expected {req.count} registers, got {len(regs)}")
-        for i, first in req.members:
-            a = self.addresses[i]
-            values[i], quality[i] = a.decode(regs[first:first + a.n_registers])
+            raise DeviceRefused(f'device "{self.name}" ({self.kind}): {what} refused with exception {_exception(rr)}')
+
+    def _write_what(self, target: RegisterWrite, value: Any) -> str:
+        last = target.address + len(value) - 1 if target.function == 16 else None
+        where = f"fc{target.function} {target.address}" + (f"..{last}" if last is not None else "")
+        return f"{target.label} {where}" if target.label else where
+
+
+def _exception(rr: Any) -> str:
+    """``3 (illegal data value)``: a Modbus exception answer's code and meaning."""
+    code = getattr(rr, "exception_code", None)
+    return f"{code} ({_EXCEPTIONS.get(code, 'unknown')})"
 
 
 _EXCEPTIONS = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",

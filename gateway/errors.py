@@ -71,6 +71,13 @@ class DeviceTimeout(DriverError):
     """A device did not answer in time."""
 
 
+class DeviceRefused(DriverError):
+    """A device answered a write with a refusal (a Modbus exception): nothing of that write was applied.
+
+    The link itself is fine: :meth:`drivers.base.Driver.write` keeps the connection open.
+    """
+
+
 class CompensationError(GatewayError):
     """A compensation value could not be written safely."""
 

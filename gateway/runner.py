@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from drivers import registry
-from drivers.base import Driver, Reading
+from drivers.base import Driver, Reading, backoff_delay_s
 from gateway.clock import Clock
 from gateway.errors import DeviceTimeout, DriverError
 from gateway.profile import Channel, Device
@@ -163,9 +163,7 @@ class DeviceRunner:
         if self._failures == 1 and self.state == "on_scan":
             log.warning("%s: %s; retrying at the next tick", self.device.name, message)
             return  # one failure of a working device: try again at once
-        opt = self.options
-        n = max(0, self._failures - 2)
-        backoff = min(opt.backoff_s * 2.0**min(n, 30), opt.backoff_max_s) * self._random.uniform(0.8, 1.2)
+        backoff = backoff_delay_s(self.options, self._failures - 2) * self._random.uniform(0.8, 1.2)
         self._retry_at = self._monotonic() + backoff
         if self.state != "off_scan":
             log.error("%s: %s; off-scan, retrying in %.1f s", self.device.name, message, backoff)

@@ -1,10 +1,12 @@
-"""The CNC's compensation registers over Modbus TCP, on the Modbus driver's client handling.
+"""The CNC's compensation registers over Modbus TCP: a Modbus TCP driver that writes.
 
 :class:`CncLink` is a :class:`drivers.modbus_tcp.ModbusTcpDriver` whose channels are the CNC's read-back
 registers (the applied offset of each axis, the status word), so reading, decoding, connecting and
-closing on any error (pymodbus keeps a dead socket until ``close()``) are the driver's. It adds the three
-writes the compensation needs: the offset commands (one request per block of contiguous registers, so a
-CNC that refuses one value refuses the whole block), the heartbeat, the enable coil.
+closing on any error (pymodbus keeps a dead socket until ``close()``) are the driver's. Its three writes go
+through the driver's public write hook (:meth:`drivers.base.Driver.write`, which owns error wrapping and
+reconnecting as ``read()`` does): the offset commands (one request per block of contiguous registers, so a
+CNC that refuses one value refuses the whole block), the heartbeat, the enable coil. A refusal
+(:class:`~gateway.errors.DeviceRefused`) becomes a :class:`CncRejected`, a compensation error.
 
 Status word (input register ``status_register``), as the bundled simulated CNC lays it out: bit 0 ACTIVE,
 1 WATCHDOG_TRIPPED, 2 RAMPING, 3 LAST_WRITE_REJECTED, 4 HEARTBEAT_OK.
@@ -12,19 +14,19 @@ Status word (input register ``status_register``), as the bundled simulated CNC l
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from drivers.modbus_common import RegisterAddress
+from drivers.modbus_common import RegisterAddress, RegisterWrite
 from drivers.modbus_tcp import ModbusTcpDriver, ModbusTcpOptions
 from gateway.clock import Clock
-from gateway.errors import CompensationError, DeviceTimeout, DriverError
+from gateway.errors import CompensationError, DeviceRefused
 from gateway.profile.live import Compensation
 
 ACTIVE, WATCHDOG_TRIPPED, RAMPING, LAST_WRITE_REJECTED, HEARTBEAT_OK = (1 << i for i in range(5))
-_EXCEPTIONS = {1: "illegal function", 2: "illegal data address", 3: "illegal data value", 4: "device failure",
-               6: "device busy"}
+#: registers one fc16 request may write (Modbus application protocol, 6.12)
+MAX_WRITE_REGISTERS = 123
 
 
 class CncRejected(CompensationError):
@@ -79,20 +81,7 @@ class CncLink(ModbusTcpDriver):
 
     def read_words(self, address: int, count: int, *, function: int = 4) -> list[int]:
         """``count`` raw registers from ``address`` in one request (the probe block a CNC macro writes)."""
-        words: list[int] = []
-
-        def request(c: Any) -> Any:
-            call = c.read_input_registers if function == 4 else c.read_holding_registers
-            rr = call(address, count=count, device_id=self.options.unit_id)
-            if not rr.isError():
-                words.extend(rr.registers[:count])
-            return rr
-
-        self._call(f"fc{function} {address}..{address + count - 1}", request)
-        if len(words) < count:
-            raise DriverError(f'device "{self.name}" ({self.kind}): fc{function} {address}..{address + count - 1}: '
-                              f"expected {count} registers, got {len(words)}")
-        return words
+        return self.read_registers(address, count, function=function)
 
     # -- writing ------------------------------------------------------------------------------------------
     def write_offsets(self, counts: Mapping[str, int]) -> None:
@@ -103,48 +92,31 @@ class CncLink(ModbusTcpDriver):
                 for k, w in enumerate(a.encode(counts[a.axis])):
                     words[a.register + k] = w
         for start, block in _blocks(words):
-            self._call(f"offsets fc16 {start}..{start + len(block) - 1}",
-                       lambda c, s=start, b=block: c.write_registers(s, values=b, device_id=self.options.unit_id))
+            self._write(RegisterWrite(function=16, address=start, label="offsets"), block)
 
     def beat(self, value: int) -> None:
         """Write the heartbeat register (any change of value is a beat)."""
         reg = self.settings.heartbeat_register
         if reg is not None:
-            self._call(f"heartbeat fc6 {reg}",
-                       lambda c: c.write_register(reg, value & 0xFFFF, device_id=self.options.unit_id))
+            self._write(RegisterWrite(function=6, address=reg, label="heartbeat"), value & 0xFFFF)
 
     def set_enabled(self, on: bool) -> None:
         """Write the enable coil (1 also clears a watchdog trip on the bundled CNC)."""
         coil = self.settings.enable_coil
         if coil is not None:
-            self._call(f"enable fc5 {coil}", lambda c: c.write_coil(coil, on, device_id=self.options.unit_id))
+            self._write(RegisterWrite(function=5, address=coil, label="enable"), on)
 
-    def _call(self, what: str, request: Callable[[Any], Any]) -> None:
-        from pymodbus.exceptions import ModbusIOException
-
-        if not self.is_open:
-            self.open()
+    def _write(self, target: RegisterWrite, value: int | bool | Sequence[int]) -> None:
         try:
-            rr = request(self._client)
-        except ModbusIOException as exc:
-            self._drop()
-            o = self.options
-            raise DeviceTimeout(f'device "{self.name}" ({self.kind}): no valid answer to {what} within '
-                                f"{o.timeout_s:g} s x {o.retries + 1}: {exc}") from exc
-        except Exception as exc:  # a reset connection surfaces as a raw OSError: close, report, reconnect later
-            self._drop()
-            raise DriverError(f'device "{self.name}" ({self.kind}): {what} failed: {type(exc).__name__}: {exc}') \
-                from exc
-        if rr.isError():
-            code = getattr(rr, "exception_code", None)
-            raise CncRejected(f'device "{self.name}" ({self.kind}): {what} refused with exception {code} '
-                              f"({_EXCEPTIONS.get(code, 'unknown')})")
+            self.write(target, value)
+        except DeviceRefused as exc:  # the CNC said no: a compensation error, the link stays open
+            raise CncRejected(str(exc)) from exc
 
 
 def _blocks(words: Mapping[int, int]) -> list[tuple[int, list[int]]]:
     out: list[tuple[int, list[int]]] = []
     for addr in sorted(words):
-        if out and out[-1][0] + len(out[-1][1]) == addr and len(out[-1][1]) < 123:
+        if out and out[-1][0] + len(out[-1][1]) == addr and len(out[-1][1]) < MAX_WRITE_REGISTERS:
             out[-1][1].append(words[addr])
         else:
             out.append((addr, [words[addr]]))
