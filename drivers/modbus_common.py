@@ -31,7 +31,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from drivers.base import Driver, Quality, SharedLine, parse_scaling, unpack_words
+from drivers.base import Driver, Quality, SharedLine, parse_common_options, parse_scaling, unpack_words
 from gateway.errors import DeviceRefused, DeviceTimeout, DriverError
 
 DATA_TYPES = ("int16", "uint16", "int32", "uint32", "float32")
@@ -175,9 +175,36 @@ def describe_requests(requests: Sequence[Request]) -> str:
 
 
 class ModbusDriver(Driver):
-    """Reads register channels with a pymodbus sync client (made by :meth:`_make_client`)."""
+    """Reads register channels with a pymodbus sync client (made by :meth:`_make_client`).
+
+    A transport (TCP, RTU) names its options type and unit-address range and parses its own link keys
+    (:meth:`_parse_link_options`); ``unit_id``, the common keys and the channel addresses are parsed here.
+    """
 
     kind: ClassVar[str] = "Modbus"
+    #: the frozen options type of the transport (its link keys, ``unit_id`` and the common keys)
+    options_type: ClassVar[type]
+    #: the unit addresses the transport allows for the device's ``unit_id``
+    unit_ids: ClassVar[tuple[int, int]] = (1, 247)
+
+    @classmethod
+    def parse_device_options(cls, table: Any) -> Any:
+        link = cls._parse_link_options(table)
+        lo, hi = cls.unit_ids
+        unit_id = table.int("unit_id", default=1, min=lo, max=hi)
+        common = parse_common_options(table)
+        if unit_id is None or None in link.values():
+            return None
+        return cls.options_type(**link, unit_id=unit_id, **common)
+
+    @classmethod
+    def _parse_link_options(cls, table: Any) -> dict[str, Any]:
+        """The transport's own keys (``host``, ``port``; ``baudrate``, ...): a bad one is reported and ``None``."""
+        raise NotImplementedError
+
+    @classmethod
+    def parse_channel_address(cls, table: Any) -> RegisterAddress | None:
+        return parse_register_address(table)
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)

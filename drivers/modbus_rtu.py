@@ -21,14 +21,8 @@ from typing import Any, ClassVar
 from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient
 
-from drivers.base import DeviceOptions, LinkBudget, parse_common_options, serial_char_s
-from drivers.modbus_common import (
-    ModbusDriver,
-    RegisterAddress,
-    describe_requests,
-    parse_register_address,
-    plan_requests,
-)
+from drivers.base import DeviceOptions, LinkBudget, serial_char_s
+from drivers.modbus_common import ModbusDriver, RegisterAddress, describe_requests, plan_requests
 
 BAUDRATES = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
 
@@ -48,28 +42,18 @@ class ModbusRtuDriver(ModbusDriver):
     """Reads register channels from a Modbus RTU device; one client, owned by the sampling thread."""
 
     kind: ClassVar[str] = "Modbus RTU"
+    options_type: ClassVar[type] = ModbusRtuOptions
 
     @classmethod
-    def parse_device_options(cls, table: Any) -> ModbusRtuOptions | None:
+    def _parse_link_options(cls, table: Any) -> dict[str, Any]:
         port = table.str("port", expected="a serial device path such as \"/dev/ttyUSB0\"")
-        baudrate = table.int("baudrate", default=19200,
-                             expected="one of " + ", ".join(str(b) for b in BAUDRATES))
+        rates = ", ".join(str(b) for b in BAUDRATES)
+        baudrate = table.int("baudrate", default=19200, expected=f"one of {rates}")
         if baudrate is not None and baudrate not in BAUDRATES:
-            rates = ", ".join(str(b) for b in BAUDRATES)
             table.problem("baudrate", f"expected one of {rates}, got {baudrate} (an integer)")
             baudrate = None
-        parity = table.str("parity", default="N", choices=("N", "E", "O"))
-        stopbits = table.int("stopbits", default=1, min=1, max=2)
-        unit_id = table.int("unit_id", default=1, min=1, max=247)
-        common = parse_common_options(table)
-        if None in (port, baudrate, parity, stopbits, unit_id):
-            return None
-        return ModbusRtuOptions(port=port, baudrate=baudrate, parity=parity, stopbits=stopbits,
-                                unit_id=unit_id, **common)
-
-    @classmethod
-    def parse_channel_address(cls, table: Any) -> RegisterAddress | None:
-        return parse_register_address(table)
+        return {"port": port, "baudrate": baudrate, "parity": table.str("parity", default="N", choices=("N", "E", "O")),
+                "stopbits": table.int("stopbits", default=1, min=1, max=2)}
 
     @classmethod
     def link_budget(cls, options: ModbusRtuOptions, addresses: Sequence[RegisterAddress]) -> LinkBudget:

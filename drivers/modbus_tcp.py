@@ -18,8 +18,8 @@ from typing import Any, ClassVar
 
 from pymodbus.client import ModbusTcpClient
 
-from drivers.base import DeviceOptions, parse_common_options
-from drivers.modbus_common import ModbusDriver, RegisterAddress, describe_requests, parse_register_address
+from drivers.base import DeviceOptions
+from drivers.modbus_common import ModbusDriver, describe_requests
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -36,20 +36,13 @@ class ModbusTcpDriver(ModbusDriver):
 
     kind: ClassVar[str] = "Modbus TCP"
     measured_link: ClassVar[bool] = True
+    options_type: ClassVar[type] = ModbusTcpOptions
+    unit_ids: ClassVar[tuple[int, int]] = (0, 255)  # a TCP device answers any unit id it is set to
 
     @classmethod
-    def parse_device_options(cls, table: Any) -> ModbusTcpOptions | None:
-        host = table.str("host", expected="a host name or IP address")
-        port = table.int("port", default=502, min=1, max=65535)
-        unit_id = table.int("unit_id", default=1, min=0, max=255)
-        common = parse_common_options(table)
-        if None in (host, port, unit_id):
-            return None
-        return ModbusTcpOptions(host=host, port=port, unit_id=unit_id, **common)
-
-    @classmethod
-    def parse_channel_address(cls, table: Any) -> RegisterAddress | None:
-        return parse_register_address(table)
+    def _parse_link_options(cls, table: Any) -> dict[str, Any]:
+        return {"host": table.str("host", expected="a host name or IP address"),
+                "port": table.int("port", default=502, min=1, max=65535)}
 
     def _make_client(self) -> ModbusTcpClient:
         o = self.options

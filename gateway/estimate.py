@@ -15,7 +15,6 @@ import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -23,6 +22,7 @@ from gateway.model.coverage import CoverageCheck, check_coverage
 from gateway.model.model import ThermalModel
 from gateway.prepare import prepare
 from gateway.recording import Recording, continued, format_recording
+from gateway.strict_json import nan_to_none
 
 ALIGN_CHOICES = ("start", "none", "offset")
 #: how the model's state at a recording's start is known: at rest, or fitted to its first hour
@@ -35,20 +35,13 @@ INITIAL_FIT_MODES = 3
 LEAD_IN_MAX = 10
 
 
-def error_figures(err: np.ndarray, measured: np.ndarray) -> dict[str, Any]:
-    """Windows, RMS and max |error|, peak |measured| and max error as % of it (NaN without windows)."""
-    if not err.size:
-        return {"windows": 0, "rms_um": math.nan, "max_abs_error_um": math.nan, "peak_um": math.nan,
-                "max_error_pct_of_peak": math.nan}
-    peak = float(np.max(np.abs(measured)))
-    max_err = float(np.max(np.abs(err)))
-    return {"windows": int(err.size), "rms_um": float(np.sqrt(np.mean(err**2))), "max_abs_error_um": max_err,
-            "peak_um": peak, "max_error_pct_of_peak": 100.0 * max_err / peak if peak > 0 else math.inf}
-
-
 @dataclass(frozen=True, kw_only=True)
 class AxisFigures:
-    """Errors of one axis over some windows: RMS, max |error|, peak |displacement|, max error as % of peak."""
+    """Errors of one axis over some windows: RMS, max |error|, peak |displacement|, max error as % of peak.
+
+    The one metrics type: ``cncgw estimate`` reports it per axis of a recording, diagnosis per axis of its
+    held-out blocks, adequacy (:class:`gateway.diagnose.adequacy.AxisAdequacy`) extends it with its verdict.
+    """
 
     axis: str
     windows: int
@@ -57,14 +50,20 @@ class AxisFigures:
     peak_um: float
     max_error_pct_of_peak: float
 
-
-@dataclass(frozen=True, kw_only=True)
-class AxisMetrics(AxisFigures):
-    """How well one axis was estimated: errors over the windows that have a measurement."""
-
-    offset_um: float  # what alignment subtracted from the measurement
+    @classmethod
+    def of(cls, axis: str, err: np.ndarray, measured: np.ndarray) -> AxisFigures:
+        """The figures of ``err`` (estimate minus measurement, um) against ``measured``; NaN without windows."""
+        if not err.size:
+            return cls(axis=axis, windows=0, rms_um=math.nan, max_abs_error_um=math.nan, peak_um=math.nan,
+                       max_error_pct_of_peak=math.nan)
+        peak = float(np.max(np.abs(measured)))
+        max_err = float(np.max(np.abs(err)))
+        return cls(axis=axis, windows=int(err.size), rms_um=float(np.sqrt(np.mean(err**2))),
+                   max_abs_error_um=max_err, peak_um=peak,
+                   max_error_pct_of_peak=100.0 * max_err / peak if peak > 0 else math.inf)
 
     def line(self) -> str:
+        """One line for people: ``z: RMS 0.412 um, max |error| ...``."""
         return (f"{self.axis}: RMS {self.rms_um:.3f} um, max |error| {self.max_abs_error_um:.3f} um, "
                 f"peak |displacement| {self.peak_um:.3f} um, max error {self.max_error_pct_of_peak:.1f} % of peak "
                 f"({self.windows} windows)")
@@ -80,7 +79,8 @@ class Estimate:
     estimated: np.ndarray  # (axes, N) um
     measured: np.ndarray  # (axes, N) um after alignment, NaN where not measured
     present: np.ndarray
-    metrics: dict[str, AxisMetrics]
+    metrics: dict[str, AxisFigures]  # over the windows that have a measurement
+    offsets_um: dict[str, float] = field(default_factory=dict)  # per axis: what alignment subtracted from it
     notes: tuple[str, ...] = ()
     settings: dict[str, str] = field(default_factory=dict)
     #: where the recording left the factor region the identification covered (None: the model records none)
@@ -94,7 +94,7 @@ class Estimate:
         return {
             "recording": self.recording,
             "settings": self.settings,
-            "axes": {a: _finite(asdict(m)) for a, m in self.metrics.items()},
+            "axes": {a: nan_to_none({**asdict(m), "offset_um": self.offsets_um[a]}) for a, m in self.metrics.items()},
             "notes": list(self.notes),
             "coverage": None if self.coverage is None else coverage_json(self.coverage, self.window_s),
         }
@@ -112,10 +112,6 @@ class Estimate:
         if self.coverage is not None:
             cols["outside_coverage"] = self.coverage.outside.astype(float)
         return format_recording(time_s=self.time_s, columns=cols, meta={**self.settings, **(meta or {})})
-
-
-def _finite(d: dict[str, object]) -> dict[str, object]:
-    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
 
 
 def estimate(
@@ -159,7 +155,8 @@ def estimate(
     if initial_state == "fit":
         est, text = _fit_initial_state(model, time_s, est, measured)
         notes.append(text)
-    metrics: dict[str, AxisMetrics] = {}
+    metrics: dict[str, AxisFigures] = {}
+    offsets: dict[str, float] = {}
     lead_n = min(_lead_in(du - du[:, :1]), LEAD_IN_MAX)
     for i, a in enumerate(model.axes):
         ok = np.isfinite(measured[i])
@@ -180,14 +177,14 @@ def estimate(
         else:
             offset = 0.0
         measured[i] -= offset
-        metrics[a] = AxisMetrics(axis=a, **error_figures(measured[i, ok] - est[i, ok], measured[i, ok]),
-                                 offset_um=offset)
+        metrics[a] = AxisFigures.of(a, measured[i, ok] - est[i, ok], measured[i, ok])
+        offsets[a] = offset
     settings = {"initial": initial, "gap_policy": gap_policy, "align": align, "initial_state": initial_state}
     if history is not None:
         settings["history"] = history.source
     return Estimate(recording=rec.source, axes=model.axes, time_s=time_s, estimated=est,
-                    measured=measured, present=prep.present[skip:], metrics=metrics, notes=tuple(notes),
-                    settings=settings, coverage=check)
+                    measured=measured, present=prep.present[skip:], metrics=metrics, offsets_um=offsets,
+                    notes=tuple(notes), settings=settings, coverage=check)
 
 
 def coverage_json(check: CoverageCheck, window_s: float) -> dict[str, object]:

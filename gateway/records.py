@@ -37,6 +37,7 @@ from gateway.adaptive.probes import Probe
 from gateway.errors import RecordingError
 from gateway.profile import Profile
 from gateway.recording import RecordingWriter
+from gateway.strict_json import nan_to_none
 from gateway.windows import ChannelStats, DeviceQuality, WindowRecord
 
 FORMAT = 1
@@ -99,17 +100,6 @@ def _narrow(path: Path, mode: int) -> None:
             log.warning("%s: cannot restrict its permissions to %o: %s", path, mode, exc)
 
 
-def _clean(x: Any) -> Any:
-    """JSON without NaN or inf (strict JSON; ``None`` stands for a missing number)."""
-    if isinstance(x, float):
-        return x if math.isfinite(x) else None
-    if isinstance(x, dict | MappingProxyType):
-        return {k: _clean(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_clean(v) for v in x]
-    return x
-
-
 def _num(x: Any) -> float:
     return math.nan if x is None else float(x)
 
@@ -125,7 +115,7 @@ def record_to_json(record: WindowRecord) -> str:
         "notes": list(record.notes),
         "reason": record.reason,
     }
-    return json.dumps(_clean(body), separators=(",", ":"), allow_nan=False)
+    return json.dumps(nan_to_none(body), separators=(",", ":"), allow_nan=False)
 
 
 def record_from_row(idx: int, start_s: float, end_s: float, status: str, body: str) -> WindowRecord:

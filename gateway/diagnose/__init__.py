@@ -5,11 +5,11 @@ the Markdown and JSON report, the figures and the extended model file. See ``gat
 for the steps and ``cncgw diagnose --help`` for the command.
 """
 
-from gateway.diagnose.api import Diagnosis, HeldMetrics, diagnose, factor_infos
+from gateway.diagnose.api import Diagnosis, diagnose, factor_infos
 from gateway.diagnose.data import DiagnosisError
 from gateway.diagnose.hypotheses import FactorInfo
 from gateway.diagnose.output import write_report
 from gateway.diagnose.search import Options
 
-__all__ = ["Diagnosis", "DiagnosisError", "FactorInfo", "HeldMetrics", "Options", "diagnose", "factor_infos",
+__all__ = ["Diagnosis", "DiagnosisError", "FactorInfo", "Options", "diagnose", "factor_infos",
            "write_report"]

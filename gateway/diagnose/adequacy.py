@@ -18,12 +18,12 @@ significant is missing" must never be printed over it. Two checks:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 from gateway.diagnose.data import Stack, recording_label
-from gateway.estimate import AxisFigures, error_figures
+from gateway.estimate import AxisFigures
 from gateway.model.model import ThermalModel
 
 #: max |error| beyond this share of the peak |displacement| is unfit for compensation
@@ -139,35 +139,34 @@ def assess(stack: Stack, model: ThermalModel, sigma_um: dict[str, float]) -> Ade
         err = np.concatenate([e for _, e, _, _ in parts])
         m = np.concatenate([x for _, _, x, _ in parts])
         p = np.concatenate([x for _, _, _, x in parts])
-        fig = error_figures(err, m)
+        fig = AxisFigures.of(a, err, m)
         band = 3.0 * sigma_um.get(a, 0.0)
         disp_rms = float(np.sqrt(np.mean((m - m.mean()) ** 2)))
         reasons = []
         # per recording, as a user running `cncgw estimate` on it sees it; a recording in which the axis barely
         # moved (under a fifth of its largest peak, or the noise) is not judged by its share of peak
-        judged = [(name, error_figures(e, x)) for name, e, x, _ in parts]
-        floor = max(10.0 * sigma_um.get(a, 0.0), 0.2 * fig["peak_um"])
-        worst = max(((name, f) for name, f in judged if f["peak_um"] >= floor),
-                    key=lambda nf: nf[1]["max_error_pct_of_peak"], default=None)
-        if worst is not None and worst[1]["max_error_pct_of_peak"] > 100 * MAX_ERROR_SHARE:
+        judged = [(name, AxisFigures.of(a, e, x)) for name, e, x, _ in parts]
+        floor = max(10.0 * sigma_um.get(a, 0.0), 0.2 * fig.peak_um)
+        worst = max(((name, f) for name, f in judged if f.peak_um >= floor),
+                    key=lambda nf: nf[1].max_error_pct_of_peak, default=None)
+        if worst is not None and worst[1].max_error_pct_of_peak > 100 * MAX_ERROR_SHARE:
             name, f = worst
-            reasons.append(f"max |error| {f['max_abs_error_um']:.3g} um is {f['max_error_pct_of_peak']:.0f} % of the "
-                           f"peak displacement {f['peak_um']:.3g} um in {name} "
+            reasons.append(f"max |error| {f.max_abs_error_um:.3g} um is {f.max_error_pct_of_peak:.0f} % of the "
+                           f"peak displacement {f.peak_um:.3g} um in {name} "
                            f"(fit: under {100 * MAX_ERROR_SHARE:.0f} %)")
         predicted = float(np.max(np.abs(p)))
-        if predicted > PREDICTION_EXCESS * fig["peak_um"] + band:
+        if predicted > PREDICTION_EXCESS * fig.peak_um + band:
             reasons.append(f"it predicts up to {predicted:.3g} um where the machine moved at most "
-                           f"{fig['peak_um']:.3g} um")
-        if disp_rms > band and fig["rms_um"] >= RESIDUAL_SHARE * disp_rms:
-            reasons.append(f"its error ({fig['rms_um']:.3g} um RMS) is as large as the displacement itself "
+                           f"{fig.peak_um:.3g} um")
+        if disp_rms > band and fig.rms_um >= RESIDUAL_SHARE * disp_rms:
+            reasons.append(f"its error ({fig.rms_um:.3g} um RMS) is as large as the displacement itself "
                            f"({disp_rms:.3g} um RMS)")
-        if worst is not None:
-            fig = {**fig, "max_abs_error_um": worst[1]["max_abs_error_um"], "peak_um": worst[1]["peak_um"],
-                   "max_error_pct_of_peak": worst[1]["max_error_pct_of_peak"]}
-        axes[a] = AxisAdequacy(axis=a, windows=fig["windows"], rms_um=fig["rms_um"],
-                               max_abs_error_um=fig["max_abs_error_um"], peak_um=fig["peak_um"],
-                               max_error_pct_of_peak=fig["max_error_pct_of_peak"], predicted_peak_um=predicted,
-                               displacement_rms_um=disp_rms, worst=worst[0] if worst else "", reasons=tuple(reasons))
+        if worst is not None:  # the worst recording's figures, over all windows' RMS
+            w = worst[1]
+            fig = replace(fig, max_abs_error_um=w.max_abs_error_um, peak_um=w.peak_um,
+                          max_error_pct_of_peak=w.max_error_pct_of_peak)
+        axes[a] = AxisAdequacy(**asdict(fig), predicted_peak_um=predicted, displacement_rms_um=disp_rms,
+                               worst=worst[0] if worst else "", reasons=tuple(reasons))
     drift = {a: resting_drift(stack, i, sigma_um.get(a, 0.0)) for i, a in enumerate(stack.axes)
              if np.isfinite(stack.y[i]).any()}
     return Adequacy(unseen=tuple(recording_label(stack.sources[r]) for r in unseen), axes=axes, drift=drift,

@@ -20,7 +20,7 @@ from threadpoolctl import threadpool_limits
 
 from gateway import __version__
 from gateway.diagnose.adequacy import Adequacy, assess
-from gateway.diagnose.compare import Comparison, HeldMetrics, compare
+from gateway.diagnose.compare import Comparison, compare
 from gateway.diagnose.data import Stack, build_stack, recording_label
 from gateway.diagnose.extend import extend_model
 from gateway.diagnose.hypotheses import FactorInfo, Hypothesis, catalogue
@@ -45,7 +45,7 @@ from gateway.diagnose.locate import (
 from gateway.diagnose.refit import Reidentified, path_corrections, reidentify
 from gateway.diagnose.search import Options, SearchResult, Trial, search
 from gateway.diagnose.select import make_blocks
-from gateway.estimate import Estimate, estimate
+from gateway.estimate import AxisFigures, Estimate, estimate
 from gateway.model.coverage import coverage_of
 from gateway.model.envelope import envelope_of
 from gateway.model.model import ThermalModel
@@ -90,12 +90,12 @@ class Diagnosis:
     wall_s: float = 0.0
 
     @property
-    def before(self) -> dict[str, HeldMetrics]:
+    def before(self) -> dict[str, AxisFigures]:
         """Held-out errors of the identified model as it is."""
         return self.comparison.candidates["identified"].metrics
 
     @property
-    def after(self) -> dict[str, HeldMetrics]:
+    def after(self) -> dict[str, AxisFigures]:
         """Held-out errors of the written model (the identified one when nothing passed)."""
         return self.comparison.written.metrics
 

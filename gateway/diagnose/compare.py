@@ -31,17 +31,12 @@ from gateway.diagnose.data import Stack, recording_label
 from gateway.diagnose.refit import Reidentified, held_out_reidentified
 from gateway.diagnose.search import Options, Trial, setting_columns
 from gateway.diagnose.select import BURN_IN, held_out, one_sided_p
-from gateway.estimate import AxisFigures, error_figures
+from gateway.estimate import AxisFigures
 from gateway.model.model import ThermalModel
 
 KEYS = ("identified", "terms", "reidentified")
 #: with this many recordings to judge on, each is left out whole
 MIN_RECORDINGS_OUT = 3
-
-
-@dataclass(frozen=True, kw_only=True)
-class HeldMetrics(AxisFigures):
-    """Held-out errors of one axis: RMS, max |error|, peak |displacement|, max error as % of peak."""
 
 
 @dataclass(kw_only=True)
@@ -53,7 +48,7 @@ class Candidate:
     model: ThermalModel
     prediction: dict[str, np.ndarray]  # per axis: held-out predictions of the measurement (NaN where not held out)
     block_sse: np.ndarray  # held-out SSE per judged block, pooled over the axes (um^2)
-    metrics: dict[str, HeldMetrics]
+    metrics: dict[str, AxisFigures]  # per axis, over the held-out blocks
     p: float = math.nan  # vs the identified model: one-sided signed-rank over the blocks
     gain: float = 0.0  # share of the identified model's pooled held-out SSE removed
     passes: bool = False
@@ -150,7 +145,7 @@ def compare(stack: Stack, model: ThermalModel, block: np.ndarray, accepted: Sequ
         measured = stack.y[i][held] - zero
         for c in cands.values():
             err = stack.y[i][held] - c.prediction[a][held]
-            c.metrics[a] = HeldMetrics(axis=a, **error_figures(err, measured))
+            c.metrics[a] = AxisFigures.of(a, err, measured)
     for c in cands.values():
         if c is base:
             c.passes, c.verdict = True, "the reference"

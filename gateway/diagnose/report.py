@@ -8,9 +8,11 @@ from typing import Any
 
 import numpy as np
 
-from gateway.diagnose.api import Diagnosis, HeldMetrics, Validation, recording_label
+from gateway.diagnose.api import Diagnosis, Validation, recording_label
 from gateway.diagnose.refit import identification_length_s
 from gateway.diagnose.search import Term, Trial
+from gateway.estimate import AxisFigures
+from gateway.strict_json import nan_to_none
 
 
 def _num(x: float, fmt: str = ".3g") -> str:
@@ -42,9 +44,8 @@ def _gains(gains: np.ndarray, sd: np.ndarray, labels: Sequence[str]) -> str:
 def to_json(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = "",
             validations: Sequence[Validation] = ()) -> dict[str, Any]:
     """The report as a JSON-ready dictionary."""
-    def metrics(m: Mapping[str, HeldMetrics]) -> dict[str, Any]:
-        return {a: {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-                    for k, v in vars(x).items()} for a, x in m.items()}
+    def metrics(m: Mapping[str, AxisFigures]) -> dict[str, Any]:
+        return {a: nan_to_none(vars(x)) for a, x in m.items()}
 
     def trial(t: Trial) -> dict[str, Any]:
         return {

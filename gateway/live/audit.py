@@ -21,7 +21,8 @@ import time
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+
+from gateway.strict_json import nan_to_none
 
 log = logging.getLogger("gateway.live")
 
@@ -47,14 +48,6 @@ CREATE TABLE IF NOT EXISTS events (
     message TEXT NOT NULL
 );
 """
-
-
-def _clean(x: Any) -> Any:
-    if isinstance(x, float):
-        return x if math.isfinite(x) else None
-    if isinstance(x, Mapping):
-        return {k: _clean(v) for k, v in x.items()}
-    return x
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -91,7 +84,7 @@ class AuditLog:
         self._db.executescript(_SCHEMA)
 
     def write(self, e: WriteEntry) -> None:
-        body = json.dumps(_clean({"estimate_um": dict(e.estimate_um), "target_um": dict(e.target_um),
+        body = json.dumps(nan_to_none({"estimate_um": dict(e.estimate_um), "target_um": dict(e.target_um),
                                   "commanded_um": dict(e.commanded_um), "applied_um": dict(e.applied_um),
                                   "note": e.note}), separators=(",", ":"), allow_nan=False)
         with self._lock:
