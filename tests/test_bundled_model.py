@@ -16,20 +16,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tests_paths import PROFILES
+from sim_shared import SIM_EXPERIMENTS
 
 from gateway.commands._common import load_model_for
 from gateway.estimate import estimate
-from gateway.identify import identify
 from gateway.live.plausibility import Plausibility
-from gateway.profile import load_profile
 from gateway.profile.live import Compensation, default_axes
 from simulators.machine import load_scenario, simulate
 
 pytestmark = pytest.mark.numeric
 
-EXPERIMENTS = ("spindle-1000rpm", "spindle-500rpm", "spindle-400-600rpm", "feed-x-fast", "feed-x-accel",
-               "feed-y-fast", "feed-y-accel", "feed-z-fast", "feed-z-accel")
+EXPERIMENTS = SIM_EXPERIMENTS
 HELD_OUT = ("random-spindle", "spindle-feeds")
 #: the displacement sensors' noise in the simulator: two fits of the same data may differ by a small
 #: share of it, never by a measurable amount
@@ -37,13 +34,11 @@ NOISE_UM = 0.1
 
 
 @pytest.fixture(scope="module")
-def models():
-    profile = load_profile(PROFILES / "sim-vmc.toml")
+def models(sim_identified):
+    """The bundled model and the one identify makes again from the same runs (conftest: once a session)."""
+    profile, _, result = sim_identified
     bundled, _ = load_model_for(profile, None)  # also checks it fits the profile
-    recs = [simulate(load_scenario(n)).recording() for n in EXPERIMENTS]
-    again = identify(recs, factors=profile.factor_names, axes=profile.axes,
-                     units={f.name: f.unit for f in profile.factors}, machine=profile.name).model
-    return bundled, again
+    return bundled, result.model
 
 
 def test_bundled_model_names_its_experiments_and_reference(models):

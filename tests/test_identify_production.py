@@ -4,21 +4,18 @@ experiments' rest levels, a warm start fitted as free decays; coverage and the r
 from __future__ import annotations
 
 import pytest
-from tests_paths import PROFILES
+from sim_shared import SIM_EXPERIMENTS
 
 from gateway.cli import main
 from gateway.estimate import estimate
 from gateway.identify import identify
-from gateway.profile import load_profile
 from gateway.recording import Recording
 from simulators.machine import load_scenario, simulate
-from simulators.machine.run import write_run
 from simulators.machine.scenario import parse_scenario_text
 
 pytestmark = pytest.mark.numeric
 
-EXPERIMENTS = ("spindle-1000rpm", "spindle-500rpm", "spindle-400-600rpm", "feed-x-fast", "feed-x-accel",
-               "feed-y-fast", "feed-y-accel", "feed-z-fast", "feed-z-accel")
+EXPERIMENTS = SIM_EXPERIMENTS
 #: another day than the bundled production day: other speeds, strokes and times
 HELD_OUT = """
 [scenario]
@@ -55,9 +52,9 @@ feed_mm_min = 5000
 
 
 @pytest.fixture(scope="module")
-def data():
-    profile = load_profile(PROFILES / "sim-vmc.toml")
-    train = [simulate(load_scenario(n)).recording() for n in EXPERIMENTS]
+def data(sim_identified):
+    """The paper's nine runs (conftest: simulated once a session), the bundled production day, another day."""
+    profile, train, _ = sim_identified
     day = simulate(load_scenario("production-day")).recording()
     held = simulate(parse_scenario_text(HELD_OUT)).recording("true")
     return profile, train, day, held
@@ -69,9 +66,9 @@ def worst(model, rec) -> float:
     return max(m.max_error_pct_of_peak for m in est.metrics.values() if m.peak_um >= 5.0)
 
 
-def test_a_production_day_joins_and_another_day_is_predicted_better(data):
+def test_a_production_day_joins_and_another_day_is_predicted_better(data, sim_identified):
     profile, train, day, held = data
-    alone = identify(train, factors=profile.factor_names, axes=profile.axes).model
+    alone = sim_identified[2].model  # the same runs identified without the production day
     joined = identify(train, factors=profile.factor_names, axes=profile.axes, production=[day])
     model = joined.model
     assert worst(model, held) < 4.0
@@ -101,12 +98,10 @@ def test_a_run_that_starts_warm_is_fitted_with_free_decays(data):
     assert worst(fitted, held) < 0.5 * worst(as_rest, held)
 
 
-def test_command_line(data, tmp_path, capsys):
+def test_command_line(data, sim_csv_dir, tmp_path, capsys):
     profile, _, _, _ = data
-    for n in (*EXPERIMENTS, "production-day"):
-        write_run(simulate(load_scenario(n)), tmp_path)
-    exps = [str(tmp_path / f"{n}.csv") for n in EXPERIMENTS]
-    day = str(tmp_path / "production-day.csv")
+    exps = [str(sim_csv_dir / f"{n}.csv") for n in EXPERIMENTS]
+    day = str(sim_csv_dir / "production-day.csv")
     out = tmp_path / "m.toml"
     assert main(["identify", "--profile", str(profile.path), *exps, "--production", day, "-o", str(out)]) == 0
     assert "from 9 experiment(s) and 1 production run(s) with the joint method" in capsys.readouterr().out

@@ -6,36 +6,32 @@ import re
 
 import numpy as np
 import pytest
-from tests_paths import PROFILES
 
 from gateway.estimate import estimate
 from gateway.identify import identify
-from gateway.profile import load_profile
 from simulators.machine import load_scenario, simulate
 
 pytestmark = pytest.mark.numeric
 
-IDENTIFICATION = ("spindle-1000rpm", "spindle-500rpm", "spindle-400-600rpm", "feed-x-fast", "feed-x-accel",
-                  "feed-y-fast", "feed-y-accel", "feed-z-fast", "feed-z-accel")
+
+@pytest.fixture(scope="module")
+def train(sim_identified):
+    return sim_identified[1]
 
 
 @pytest.fixture(scope="module")
-def train():
-    return [simulate(load_scenario(n)).recording() for n in IDENTIFICATION]
-
-
-@pytest.fixture(scope="module")
-def identified(train):
-    profile = load_profile(PROFILES / "sim-vmc.toml")
-    return profile, identify(train, factors=profile.factor_names, axes=profile.axes,
-                             units={f.name: f.unit for f in profile.factors})
+def identified(sim_identified):
+    """The paper's nine runs identified (conftest: once a session, shared with other modules)."""
+    profile, _, result = sim_identified
+    return profile, result
 
 
 def test_axes_fitted_in_parallel_processes_give_the_same_model(identified, train):
     profile, serial = identified
     seen = []
     parallel = identify(train, factors=profile.factor_names, axes=profile.axes,
-                        units={f.name: f.unit for f in profile.factors}, jobs=2, progress=seen.append)
+                        units={f.name: f.unit for f in profile.factors}, machine=profile.name, jobs=2,
+                        progress=seen.append)
     assert parallel.model.paths == serial.model.paths
     def untimed(report):  # the axis lines end with their wall time
         return [re.sub(r"; [0-9.]+ s$", "", line) for line in report]

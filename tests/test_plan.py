@@ -8,32 +8,27 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from sim_shared import SIM_EXPERIMENTS
 from tests_paths import PROFILES
 
 from gateway.cli import main
 from gateway.estimate import estimate
 from gateway.identify import identify
-from gateway.profile import load_profile
-from gateway.recording import read_for_profile
 from simulators.machine import load_scenario, simulate
-from simulators.machine.run import write_run
 from simulators.machine.scenario import parse_scenario_text
 
 pytestmark = pytest.mark.numeric
 
-EXPERIMENTS = ("spindle-1000rpm", "spindle-500rpm", "spindle-400-600rpm", "feed-x-fast", "feed-x-accel",
-               "feed-y-fast", "feed-y-accel", "feed-z-fast", "feed-z-accel")
+EXPERIMENTS = SIM_EXPERIMENTS
 PROFILE = PROFILES / "sim-vmc.toml"
 
 
 @pytest.fixture(scope="module")
-def planned(tmp_path_factory):
-    d = tmp_path_factory.mktemp("plan")
-    for n in EXPERIMENTS:
-        write_run(simulate(load_scenario(n)), d)
+def planned(tmp_path_factory, sim_csv_dir):
+    """``cncgw plan`` on the simulated runs' files (conftest: written once a session)."""
+    d = sim_csv_dir
     day = simulate(load_scenario("production-day"))
-    write_run(day, d)
-    out = d / "plan"
+    out = tmp_path_factory.mktemp("plan") / "plan"
     code = main(["plan", "--profile", str(PROFILE), *(str(d / f"{n}.csv") for n in EXPERIMENTS),
                  "--production", str(d / "production-day.csv"), "-o", str(out)])
     assert code == 0
@@ -73,13 +68,12 @@ def test_scenarios_record_the_proposed_levels_on_the_simulator(planned):
                     assert np.any(np.abs(run.factors[f"{a}_feed"] - feed) < 0.15 * feed), (p["name"], a, feed)
 
 
-def test_identification_with_the_proposals_predicts_the_production_day_better(planned):
-    d, day, doc = planned
-    profile = load_profile(PROFILE)
-    exps = [read_for_profile(d / f"{n}.csv", profile) for n in EXPERIMENTS]
+def test_identification_with_the_proposals_predicts_the_production_day_better(planned, sim_identified):
+    _, day, doc = planned
+    profile, exps, identified = sim_identified  # the nine runs plan read, identified once a session
     extra = [simulate(parse_scenario_text(Path(p["scenario"]).read_text())).recording() for p in doc["proposals"]]
     truth = day.recording("true")
-    before = identify(exps, factors=profile.factor_names, axes=profile.axes).model
+    before = identified.model
     after = identify(exps + extra, factors=profile.factor_names, axes=profile.axes).model
     e0, e1 = estimate(before, truth), estimate(after, truth)
     worst0 = max(m.max_error_pct_of_peak for m in e0.metrics.values() if m.peak_um >= 5)
