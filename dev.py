@@ -2,8 +2,8 @@
 """Set up a local virtualenv and run the project's two jobs.
 
     python3 dev.py demo     the main job: the demo against the bundled simulators
-    python3 dev.py test     the whole test suite (ruff, then pytest; then the numeric tests again
-                            under another OpenBLAS kernel, as on another CPU)
+    python3 dev.py test     the whole test suite (ruff, then pytest on 2 cores; then the numeric tests
+                            again under another OpenBLAS kernel, as on another CPU); each phase's time
     python3 dev.py lock     re-resolve constraints.txt to the newest versions pyproject.toml allows
                             (pip-tools, in .venv-lock); ``lock -P numpy`` upgrades one package only
 
@@ -20,6 +20,7 @@ import hashlib
 import os
 import subprocess
 import sys
+import time
 import venv
 from pathlib import Path
 
@@ -33,6 +34,9 @@ LOCK = ROOT / "constraints.txt"
 LOCK_VENV = ROOT / ".venv-lock"
 #: the OpenBLAS kernel the numeric tests run under a second time (an old x86-64 one: no AVX, other sums)
 OTHER_KERNEL = "Prescott"
+#: pytest processes for the whole suite (pytest-xdist): CI has 2 cores; the tests that sample on wall time
+#: (2 ms samplers, scaled clocks) were checked beside one other worker, not more
+WORKERS = min(2, os.cpu_count() or 1)
 
 
 def _ensure_venv() -> None:
@@ -41,6 +45,7 @@ def _ensure_venv() -> None:
     want = hashlib.sha256((ROOT / "pyproject.toml").read_bytes() + LOCK.read_bytes()).hexdigest()
     if PY.exists() and STAMP.exists() and STAMP.read_text().strip() == want:
         return
+    start = time.monotonic()
     if not PY.exists():
         print(f"dev.py: creating {VENV}", flush=True)
         venv.EnvBuilder(with_pip=True).create(VENV)
@@ -48,6 +53,7 @@ def _ensure_venv() -> None:
     subprocess.run([str(PY), "-m", "pip", "install", "--quiet", "--upgrade", "pip"], check=True)
     subprocess.run([str(PY), "-m", "pip", "install", "--quiet", "-c", str(LOCK), "-e", f"{ROOT}[test]"], check=True)
     STAMP.write_text(want)
+    print(f"dev.py: installing took {time.monotonic() - start:.0f} s", flush=True)
 
 
 def _lock(rest: list[str]) -> int:
@@ -76,16 +82,26 @@ def main(argv: list[str]) -> int:
     os.chdir(ROOT)
     if job == "demo":
         return subprocess.call([str(BIN / "cncgw"), "demo", *rest])
-    lint = subprocess.call([str(PY), "-m", "ruff", "check", "gateway", "drivers", "simulators", "tests", "bench"])
-    tests = subprocess.call([str(PY), "-m", "pytest", *rest])
+    lint = _timed("ruff", [str(PY), "-m", "ruff", "check", "gateway", "drivers", "simulators", "tests", "bench"])
+    # the whole suite on every core (up to WORKERS); a selection as asked, in one process
+    workers = ["-n", str(WORKERS)] if not rest and WORKERS > 1 else []
+    tests = _timed("pytest", [str(PY), "-m", "pytest", *workers, *rest])
     other_cpu = 0
     if not rest:
         # fits and filters again on another CPU's arithmetic (another OpenBLAS kernel): what a user on
         # other hardware gets must pass the same physical tolerances, not only this machine's digits
         print(f"dev.py: the numeric tests again with OPENBLAS_CORETYPE={OTHER_KERNEL}", flush=True)
-        other_cpu = subprocess.call([str(PY), "-m", "pytest", "-q", "-m", "numeric"],
-                                    env={**os.environ, "OPENBLAS_CORETYPE": OTHER_KERNEL})
+        other_cpu = _timed("numeric again", [str(PY), "-m", "pytest", "-q", *workers, "-m", "numeric"],
+                           env={**os.environ, "OPENBLAS_CORETYPE": OTHER_KERNEL})
     return lint or tests or other_cpu
+
+
+def _timed(what: str, cmd: list[str], **kw) -> int:
+    """Run ``cmd``; say how long it took (the suite must stay within CI's 10 minutes on 2 cores)."""
+    start = time.monotonic()
+    code = subprocess.call(cmd, **kw)
+    print(f"dev.py: {what} took {time.monotonic() - start:.0f} s", flush=True)
+    return code
 
 
 if __name__ == "__main__":
