@@ -4,7 +4,7 @@ naive read-then-sleep(2 ms) loop, in the same run.
 The simulated machine and its ADC board run in another process (``cncgw simulate serve``), as a real board
 would be another machine: the figures are the gateway's. The gateway side runs what it runs in production:
 the sampler thread, the window closer, the durable SQLite store and the live estimator (one
-``LiveEstimator.step()`` per window, with a model identified from the simulator by ``cncgw demo``).
+``ModelStepper.step()`` per window, with a model identified from the simulator by ``cncgw demo``).
 
 Printed per run: achieved rate, missed ticks, lateness of ticks against their deadlines (p50/p99/max),
 CPU of the process and of each core. Aims (issue 4): >= 499.5 Hz, <= 0.1 % missed, p99 lateness <= 0.5 ms.
@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT))
 from gateway.clock import RealClock  # noqa: E402
 from gateway.model import load_model  # noqa: E402
 from gateway.profile import load_profile  # noqa: E402
-from gateway.records import RecordStore  # noqa: E402
+from gateway.record_store import RecordStore  # noqa: E402
 from gateway.sampler import Acquisition  # noqa: E402
 from gateway.windows import WindowRecord  # noqa: E402
 
@@ -84,19 +84,19 @@ class EstimatorSink:
     def __init__(self, model_path: Path) -> None:
         self.model = load_model(model_path)
         self.window_s: float | None = None
-        self.estimator = None
+        self.stepper = None
         self.steps = 0
         self.step_s: list[float] = []
         self.last = None
 
     def __call__(self, record: WindowRecord) -> None:
-        if self.estimator is None:
-            self.estimator = self.model.discretize(record.end_s - record.start_s).live()
+        if self.stepper is None:
+            self.stepper = self.model.discretize(record.end_s - record.start_s).stepper()
         ref = self.model.reference
         du = [record.factors.get(f, ref[f]) - ref[f] for f in self.model.factors]
         du = [0.0 if d != d else d for d in du]  # a gap: hold the reference (bench only)
         t0 = time.perf_counter()
-        self.last = self.estimator.step(du)
+        self.last = self.stepper.step(du)
         self.step_s.append(time.perf_counter() - t0)
         self.steps += 1
 

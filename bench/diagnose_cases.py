@@ -190,7 +190,7 @@ class Row:
 
 def fresh_rms(model: ThermalModel, rec: Recording) -> float:
     """RMS over all axes after the burn-in, best constant offset per axis removed (before and after alike)."""
-    from gateway.estimate import estimate
+    from gateway.replay import estimate
 
     e = estimate(model, rec, align="none")
     keep = (e.time_s - e.time_s[0]) >= BURN_IN_H * 3600

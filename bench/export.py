@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from gateway.profile import load_profile  # noqa: E402
-from gateway.records import RecordStore, export_recording  # noqa: E402
+from gateway.record_store import RecordStore, export_recording  # noqa: E402
 from gateway.windows import ChannelStats, WindowRecord  # noqa: E402
 
 PROFILE = ROOT / "profiles" / "sim-vmc.toml"

@@ -32,10 +32,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/diagnose.py's production days
 
-from gateway.estimate import estimate, plot_estimates
 from gateway.identify import identify
 from gateway.model import FirstOrder, PathTF, ThermalModel
 from gateway.profile import load_profile
+from gateway.replay import estimate, plot_estimates
 from gateway.synthetic import Segment, make_recording, schedule_inputs
 
 ROOT = Path(__file__).resolve().parent.parent

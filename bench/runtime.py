@@ -37,12 +37,12 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from gateway.clock import ScaledClock  # noqa: E402
-from gateway.live.estimator import Estimator  # noqa: E402
 from gateway.live.runtime import LiveGateway  # noqa: E402
+from gateway.live.tracking import DisplacementTracker  # noqa: E402
 from gateway.model import load_model  # noqa: E402
 from gateway.profile import load_profile  # noqa: E402
 from gateway.profile.live import Live  # noqa: E402
-from gateway.records import STORE_NAME, RecordStore  # noqa: E402
+from gateway.record_store import STORE_NAME, RecordStore  # noqa: E402
 from gateway.windows import WindowRecord  # noqa: E402
 
 CNCGW = str(Path(sys.executable).with_name("cncgw"))
@@ -78,7 +78,7 @@ def estimator_cost(n: int) -> None:
     from types import MappingProxyType
 
     model = load_model(MODEL)
-    est = Estimator(model, window_s=60.0, live=Live())
+    est = DisplacementTracker(model, window_s=60.0, live=Live())
     rng = np.random.default_rng(1)
     ref = model.reference
     times = []
@@ -91,8 +91,8 @@ def estimator_cost(n: int) -> None:
         est.update(rec)
         times.append(time.perf_counter() - t0)
     t = np.array(times) * 1e6
-    # baseline in the same run: the bare LiveEstimator step, nothing else (no records, gap policy, prediction)
-    bare, du = est.dm.live(), rng.normal(0, 1, (n, len(model.input_names)))
+    # baseline in the same run: the bare ModelStepper step, nothing else (no records, gap policy, prediction)
+    bare, du = est.dm.stepper(), rng.normal(0, 1, (n, len(model.input_names)))
     steps = []
     for k in range(n):
         t0 = time.perf_counter()
@@ -104,7 +104,7 @@ def estimator_cost(n: int) -> None:
           f"median {np.median(t):.0f} us, p99 {np.percentile(t, 99):.0f} us, max {t.max():.0f} us over {n} windows "
           f"(step + one-window prediction + record handling); the bare step alone: median {np.median(b):.0f} us "
           f"(update / bare step {np.median(t) / np.median(b):.2f}x)")
-    from gateway.live.estimator import history_windows
+    from gateway.live.tracking import history_windows
 
     hist = history_windows(model, 60.0, Live())
     print(f"rebuild on start reads at most {hist} windows ({hist / 60 / 24:.1f} days: 20 x the slowest time constant)")
@@ -218,7 +218,7 @@ def _prefill(data: Path, profile: object, days: float) -> int:
     """A store of ``days`` of one-minute windows ending now (as a gateway running that long leaves it)."""
     from types import MappingProxyType
 
-    from gateway.records import record_to_json
+    from gateway.record_store import record_to_json
     from gateway.windows import ChannelStats, DeviceQuality
 
     data.mkdir(parents=True, exist_ok=True)

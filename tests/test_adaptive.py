@@ -211,7 +211,7 @@ def test_live_contributions_equal_batch_and_sum_to_the_estimate():
     du = np.abs(rng.normal(size=(len(model.factors), 300))) * np.array([800, 300, 40, 3000, 2, 3000, 2, 500, 2])[:, None]
     dm = model.discretize(DT)
     batch = dm.contributions(du)
-    live = dm.live()
+    live = dm.stepper()
     for k in range(du.shape[1]):
         y = live.step(du[:, k])
         c = live.contributions()

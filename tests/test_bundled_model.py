@@ -19,9 +19,9 @@ import pytest
 from sim_shared import SIM_EXPERIMENTS
 
 from gateway.commands._common import load_model_for
-from gateway.estimate import estimate
 from gateway.live.plausibility import Plausibility
 from gateway.profile.live import Compensation, default_axes
+from gateway.replay import estimate
 from simulators.machine import load_scenario, simulate
 
 pytestmark = pytest.mark.numeric

@@ -15,10 +15,10 @@ import pytest
 
 from gateway.cli import build_parser, main
 from gateway.errors import EXIT_CODES, GatewayError
-from gateway.estimate import estimate
 from gateway.model import FirstOrder, PathTF, SecondOrder, ThermalModel, load_model, save_model
 from gateway.profile import load_profile
 from gateway.recording import read_for_profile, read_recording, write_recording
+from gateway.replay import estimate
 from gateway.synthetic import Segment, make_recording, schedule_inputs
 
 PROFILE = """

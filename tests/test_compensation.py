@@ -18,8 +18,8 @@ from test_sim_devices_support import WaveSource
 from gateway.clock import ManualClock
 from gateway.live.audit import AuditLog
 from gateway.live.compensation import CompensationWriter
-from gateway.live.estimator import EstimateUpdate
 from gateway.live.plausibility import AxisBound, Plausibility
+from gateway.live.tracking import EstimateUpdate
 from gateway.profile.live import Compensation, default_axes
 from simulators.devices import CompensationConfig, DeviceSet, DeviceSetConfig
 

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 from gateway.errors import ModelError
-from gateway.estimate import estimate
-from gateway.live.estimator import Estimator
+from gateway.live.tracking import DisplacementTracker
 from gateway.model import PathTF, ThermalModel, load_model, model_to_toml
 from gateway.model.coverage import Coverage, Ratio, check_coverage, co_varying_pairs, coverage_of
 from gateway.model.terms import FirstOrder
 from gateway.profile.live import Live
 from gateway.recording import Recording
+from gateway.replay import estimate
 from gateway.windows import ChannelStats, DeviceQuality, WindowRecord
 
 FACTORS = ("speed", "i1_sq", "feed")
@@ -150,10 +150,10 @@ def _record(index: int, speed: float, i1_sq: float) -> WindowRecord:
 
 def test_live_estimator_says_which_windows_leave_coverage():
     cov = coverage_of([spindle_run(1000, 0.2), spindle_run(500, 0.4)], FACTORS)
-    est = Estimator(small_model(cov), window_s=60.0, live=Live())
+    est = DisplacementTracker(small_model(cov), window_s=60.0, live=Live())
     inside = est.update(_record(0, 800.0, 4.0 + 800.0 * 0.3))
     outside = est.update(_record(1, 3000.0, 4.0 + 3000.0 * 0.04))
     assert inside.outside_coverage == ""
     assert outside.outside_coverage == "speed 3000 (above the covered 1000); i1_sq per speed 0.04 (below the covered 0.2)"
-    assert Estimator(small_model(None), window_s=60.0, live=Live()).update(
+    assert DisplacementTracker(small_model(None), window_s=60.0, live=Live()).update(
         _record(1, 3000.0, 124.0)).outside_coverage == ""

@@ -22,10 +22,10 @@ from gateway.diagnose import Options, diagnose, factor_infos
 from gateway.diagnose.data import build_stack
 from gateway.diagnose.locate import aligned_residual, coloured_correlation, find_steps, noise_level, spectral_lines
 from gateway.diagnose.select import BURN_IN, holm, make_blocks, one_sided_p
-from gateway.estimate import estimate
 from gateway.model import FirstOrder, PathTF, ThermalModel, load_model, save_model
 from gateway.profile import load_profile
 from gateway.recording import Recording, write_recording
+from gateway.replay import estimate
 
 pytestmark = pytest.mark.numeric
 

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 from gateway.errors import ModelError, RecordingError
-from gateway.estimate import estimate
-from gateway.model import FirstOrder, LiveEstimator, PathTF, ThermalModel, load_model, model_to_toml, save_model
+from gateway.model import FirstOrder, ModelStepper, PathTF, ThermalModel, load_model, model_to_toml, save_model
 from gateway.model.inputs import (
     Column,
     Flag,
@@ -23,6 +22,7 @@ from gateway.model.inputs import (
 )
 from gateway.prepare import prepare
 from gateway.recording import Recording
+from gateway.replay import estimate
 
 FACTORS = ("speed", "i1_sq", "z_i_sq")
 INPUTS = (
@@ -163,7 +163,7 @@ def test_live_estimator_agrees_with_batch_replay_on_derived_inputs():
     initial = {f: float(v[0]) for f, v in sig.items()} | {"room_c": float(rec.extras["room_c"][0])}
     start = initial_values(m.inputs, initial, time0_s=float(rec.time_s[0]))
     stepper = InputStepper(m.inputs, dt_s=60.0, initial=initial, time0_s=float(rec.time_s[0]))
-    live = LiveEstimator(dm)
+    live = ModelStepper(dm)
     for k in range(len(rec)):
         values = stepper.step({f: sig[f][k] for f in FACTORS}, time_s=float(rec.time_s[k]),
                               columns={"room_c": rec.extras["room_c"][k]})

@@ -17,10 +17,10 @@ import pytest
 from gateway.cli import main
 from gateway.diagnose import diagnose
 from gateway.diagnose.api import validate
-from gateway.estimate import estimate
 from gateway.identify import identify
 from gateway.model import FirstOrder, PathTF, ThermalModel, load_model, save_model
 from gateway.recording import Recording, write_recording
+from gateway.replay import estimate
 
 pytestmark = pytest.mark.numeric
 

@@ -30,10 +30,10 @@ from drivers.dcon import checksum, parse_answer
 from drivers.modbus_common import DATA_TYPES, RegisterAddress
 from drivers.modbus_tcp import ModbusTcpDriver, ModbusTcpOptions
 from gateway.errors import DriverError, GatewayError, ModelError, ProfileError, RecordingError
-from gateway.estimate import estimate
 from gateway.model import load_model, save_model
 from gateway.profile import load_profile
 from gateway.recording import MAX_ABS_VALUE, MAX_MISSING_WINDOWS, read_for_profile, read_recording
+from gateway.replay import estimate
 
 FUZZ = settings(derandomize=True, database=None, deadline=timedelta(seconds=10), max_examples=150,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
@@ -86,7 +86,7 @@ def test_any_model_loads_or_is_one_error_and_a_loaded_one_gives_finite_estimates
     du = np.full((len(model.input_names), 120), level)
     du[:, ::7] = 0.0  # on and off
     assert np.all(np.isfinite(dm.simulate(du)))
-    live = dm.live()
+    live = dm.stepper()
     for k in range(5):
         assert np.all(np.isfinite(live.step(du[:, k])))
 

@@ -7,9 +7,9 @@ import pytest
 from sim_shared import SIM_EXPERIMENTS
 
 from gateway.cli import main
-from gateway.estimate import estimate
 from gateway.identify import identify
 from gateway.recording import Recording
+from gateway.replay import estimate
 from simulators.machine import load_scenario, simulate
 from simulators.machine.scenario import parse_scenario_text
 

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from test_identify import FIRST_ORDER_PLANT, PAPER_DESIGN, F, experiment, recordings
 
-from gateway.estimate import estimate
 from gateway.identify import identify
 from gateway.model import load_model, model_to_toml
+from gateway.replay import estimate
 from gateway.synthetic import make_recording
 
 pytestmark = pytest.mark.numeric

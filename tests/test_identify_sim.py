@@ -7,8 +7,8 @@ import re
 import numpy as np
 import pytest
 
-from gateway.estimate import estimate
 from gateway.identify import identify
+from gateway.replay import estimate
 from simulators.machine import load_scenario, simulate
 
 pytestmark = pytest.mark.numeric

@@ -21,7 +21,7 @@ from gateway.commands._common import load_model_for
 from gateway.live.audit import AUDIT_NAME, AuditLog
 from gateway.live.runtime import LiveGateway
 from gateway.profile import load_profile
-from gateway.records import STORE_NAME, RecordStore
+from gateway.record_store import STORE_NAME, RecordStore
 from simulators.closed_loop import closed_loop_errors, live_profile
 from simulators.devices import DeviceSetConfig, serve
 from simulators.machine import LiveMachine
@@ -152,7 +152,7 @@ def test_restart_rebuilds_the_estimate_and_changes_the_compensation_by_less_than
             stored = len(store)
         rig.clock.advance(down_s)
         with rig.gateway(data) as gw2:
-            assert gw2.estimator.rebuilt_windows == stored
+            assert gw2.tracker.rebuilt_windows == stored
             gw2.run_stepped(end_s)
             health = gw2.health()
         assert rig.devices.cnc.update().trips == 0

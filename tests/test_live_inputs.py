@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 
 from gateway.errors import ModelError
-from gateway.live.estimator import Estimator
-from gateway.model import LiveEstimator, PathTF, ThermalModel
+from gateway.live.tracking import DisplacementTracker
+from gateway.model import ModelStepper, PathTF, ThermalModel
 from gateway.model.inputs import Column, Periodic, Product
 from gateway.model.terms import FirstOrder
 from gateway.profile import load_profile
 from gateway.profile.live import Live
+from gateway.record_store import STORE_NAME, RecordStore, export_recording
 from gateway.recording import read_for_profile
-from gateway.records import STORE_NAME, RecordStore, export_recording
 from gateway.windows import ChannelStats, DeviceQuality, WindowRecord
 
 WINDOW_S = 60.0
@@ -132,7 +132,7 @@ def profile(tmp_path):
 
 
 def live_estimates(model, recs, *, channel_names=("speed", "current", "room_c")):
-    est = Estimator(model, window_s=WINDOW_S, live=Live(), channels={"spindle_speed": "speed"},
+    est = DisplacementTracker(model, window_s=WINDOW_S, live=Live(), channels={"spindle_speed": "speed"},
                     channel_names=channel_names)
     return est, {r.index: axes_of(est.update(r)) for r in recs}
 
@@ -142,7 +142,7 @@ def axes_of(update) -> np.ndarray:
 
 
 def test_live_estimator_with_derived_inputs_equals_estimate_on_the_exported_records(profile, tmp_path):
-    from gateway.estimate import estimate
+    from gateway.replay import estimate
 
     model = diagnosed_model()
     recs = records(400, missing={150, 151}, bad={230})
@@ -168,13 +168,13 @@ def test_a_restart_replays_the_derived_inputs_to_the_same_estimate(profile):
     recs = records(300, missing=set(), bad=set())
     _, ref = live_estimates(model, recs)
     cut = 200
-    est = Estimator(model, window_s=WINDOW_S, live=Live(), channel_names=["speed", "current", "room_c"])
+    est = DisplacementTracker(model, window_s=WINDOW_S, live=Live(), channel_names=["speed", "current", "room_c"])
     est.rebuild(recs[:cut])
     again = {r.index: axes_of(est.update(r)) for r in recs[cut:]}
     assert max(float(np.max(np.abs(again[i] - ref[i]))) for i in again) < 1e-9
 
     def truncated(origin):  # the store keeps more than the history the rebuild reads
-        e = Estimator(model, window_s=WINDOW_S, live=Live(), channel_names=["speed", "current", "room_c"])
+        e = DisplacementTracker(model, window_s=WINDOW_S, live=Live(), channel_names=["speed", "current", "room_c"])
         e.rebuild(recs[100:cut], origin=origin)
         return max(float(np.max(np.abs(axes_of(e.update(r)) - ref[r.index]))) for r in recs[cut:])
 
@@ -192,7 +192,7 @@ def test_a_column_input_without_a_channel_is_refused_at_start(tmp_path):
 
 def test_peek_is_the_next_step_without_taking_it():
     model = diagnosed_model()
-    est = LiveEstimator(model.discretize(WINDOW_S))
+    est = ModelStepper(model.discretize(WINDOW_S))
     rng = np.random.default_rng(3)
     for _ in range(30):
         est.step(rng.normal(size=len(model.input_names)))

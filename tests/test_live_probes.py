@@ -19,7 +19,7 @@ from gateway.commands._common import load_model_for
 from gateway.live.audit import AUDIT_NAME, AuditLog
 from gateway.live.runtime import LiveGateway
 from gateway.profile import load_profile
-from gateway.records import STORE_NAME, stored_probes
+from gateway.record_store import STORE_NAME, stored_probes
 from simulators.closed_loop import live_profile
 from simulators.devices import DeviceSetConfig, serve
 from simulators.devices.cnc import CompensationConfig, ProbeCycles
@@ -81,12 +81,12 @@ def test_probes_update_the_live_estimate_and_a_restart_rebuilds_it(tmp_path):
         with rig.gateway(data) as gw:
             gw.run_stepped(3.5 * 3600 + 120)  # the 7th probe, at 3.5 h, read and applied
             health = gw.health()
-            est = gw.estimator.adaptive.estimate()
+            est = gw.tracker.adaptive.estimate()
         last = max(rig.updates)
         before = rig.updates[last]
         with rig.gateway(data) as gw2:  # a restart: the store's windows and probes replayed
-            rebuilt = gw2.estimator.last
-            assert gw2.estimator.rebuilt_windows == last + 1
+            rebuilt = gw2.tracker.last
+            assert gw2.tracker.rebuilt_windows == last + 1
         cnc = rig.devices.cnc
     finally:
         rig.close()
@@ -108,7 +108,7 @@ def test_probes_update_the_live_estimate_and_a_restart_rebuilds_it(tmp_path):
     assert len(applied) == 3 * 7  # three axes a probe
     # exported with the records: sparse probe_* columns, read back as probes (stamped at their window's end)
     from gateway.adaptive.probes import read_probes
-    from gateway.records import RecordStore, export_recording
+    from gateway.record_store import RecordStore, export_recording
 
     with RecordStore(data / STORE_NAME) as store:
         exported = export_recording(store, rig.profile, tmp_path / "export.csv")
@@ -134,13 +134,13 @@ def test_bad_probes_are_refused_live_with_their_reason(tmp_path):
             z = cnc.probes_taken[-1][1]["z"]
             cnc.write_probe(values_um={"z": z + 4.0}, seq=seq)  # the same number again, other values
             gw.run_stepped(2 * 3600 + 200)
-            cnc.write_probe(values_um={"z": -gw.estimator.last.estimate_um["z"]}, seq=seq + 1)  # sign reversed
+            cnc.write_probe(values_um={"z": -gw.tracker.last.estimate_um["z"]}, seq=seq + 1)  # sign reversed
             gw.run_stepped(2 * 3600 + 300)
             cnc.write_probe([seq + 2, 8, 0, 0, 0, 0, 0, 0, 3])  # axis mask with no axis of ours
             gw.run_stepped(2 * 3600 + 400)
-            cnc.write_probe(values_um={"z": gw.estimator.last.estimate_um["z"] + 30.0}, seq=seq + 3)  # a chip
+            cnc.write_probe(values_um={"z": gw.tracker.last.estimate_um["z"] + 30.0}, seq=seq + 3)  # a chip
             gw.run_stepped(2 * 3600 + 500)
-            decisions = list(gw.estimator.decisions)
+            decisions = list(gw.tracker.decisions)
     finally:
         rig.close()
     refused = [d.reason for d in decisions if not d.accepted]

@@ -18,7 +18,7 @@ import time
 
 from gateway.clock import ScaledClock
 from gateway.live.audit import AUDIT_NAME, AuditLog
-from gateway.records import STORE_NAME, RecordStore
+from gateway.record_store import STORE_NAME, RecordStore
 from simulators.closed_loop import live_profile
 from simulators.devices import CompensationConfig, DeviceSetConfig, serve
 from simulators.machine import LiveMachine

@@ -17,13 +17,13 @@ import pytest
 from test_live import MAX_STEP_UM, Rig, audited
 
 from gateway.cli import main
-from gateway.live.estimator import Estimator
 from gateway.live.plausibility import ABS_FACTOR, ABS_MARGIN_UM, Plausibility
+from gateway.live.tracking import DisplacementTracker
 from gateway.model import FirstOrder, save_model
 from gateway.model.envelope import Envelope
 from gateway.profile import load_profile
 from gateway.profile.live import Compensation, default_axes
-from gateway.records import STORE_NAME, RecordStore
+from gateway.record_store import STORE_NAME, RecordStore
 
 
 def gain_1e300(model):
@@ -157,10 +157,10 @@ def test_a_window_the_store_cannot_commit_is_not_acted_on_and_the_offsets_hold(t
             assert gw.writer.writes > writes  # compensating again
             missing = gw.store_failures
             assert len(gw.store) == stored + gw.windows_live - live
-            assert gw.estimator.history.filled_total >= missing  # the windows not stored, filled by the gap policy
-            live_estimate = dict(gw.estimator.last.estimate_um)
+            assert gw.tracker.history.filled_total >= missing  # the windows not stored, filled by the gap policy
+            live_estimate = dict(gw.tracker.last.estimate_um)
             with RecordStore(data / STORE_NAME) as store:  # a restart sees the same history: the same estimate
-                again = Estimator(gw.model, window_s=gw.profile.sampling.window_s, live=gw.profile.live)
+                again = DisplacementTracker(gw.model, window_s=gw.profile.sampling.window_s, live=gw.profile.live)
                 again.rebuild(store.windows())
         assert dict(again.last.estimate_um) == pytest.approx(live_estimate, abs=1e-9)
         writes, events = audited(data)
@@ -193,7 +193,7 @@ def test_windows_older_than_keep_days_are_pruned_and_files_are_private(tmp_path)
         assert any(k == "prune" and "older than 0.05 days deleted" in m for _, k, _, m in events)
         rig.clock.advance(2.0)
         with rig.gateway(data) as gw:  # a restart replays what was kept: 1 h of history
-            assert gw.estimator.rebuilt_windows == 60
+            assert gw.tracker.rebuilt_windows == 60
             gw.run_stepped(155 * 60)
             assert "inputs" not in gw.alarms
     finally:
@@ -254,7 +254,7 @@ def test_a_restart_beats_before_it_replays_the_history_and_run_imports_no_identi
             gw.run_stepped(10 * 60)
         rig.clock.advance(2.0)
         with rig.gateway(data) as gw:
-            assert gw.estimator.rebuilt_windows >= 9
+            assert gw.tracker.rebuilt_windows >= 9
         _, events = audited(data)
         second = [(k, n) for _, k, n, _ in events][[k for _, k, _, _ in events].index("stop") + 1:]
         assert second.index(("sync", "cnc")) < second.index(("rebuild", "estimator"))  # the CNC hears it first

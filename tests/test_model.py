@@ -11,7 +11,7 @@ import scipy.linalg
 from gateway.errors import ModelError
 from gateway.model import (
     FirstOrder,
-    LiveEstimator,
+    ModelStepper,
     PathTF,
     SecondOrder,
     ThermalModel,
@@ -165,7 +165,7 @@ def test_live_estimator_equals_batch_replay():
     dm = rich_model().discretize(60.0)
     du = inputs(800)
     batch = dm.simulate(du)
-    live = dm.live()
+    live = dm.stepper()
     stepped = np.array([live.step(du[:, k]) for k in range(du.shape[1])]).T
     assert np.max(np.abs(stepped - batch)) < 1e-9
     assert live.steps == 800
@@ -176,7 +176,7 @@ def test_rebuilt_estimator_continues_like_an_uninterrupted_one():
     dm = rich_model().discretize(60.0)
     du = inputs(600, seed=1)
     batch = dm.simulate(du)
-    rebuilt = LiveEstimator.from_history(dm, du[:, :400])
+    rebuilt = ModelStepper.from_history(dm, du[:, :400])
     after = np.array([rebuilt.step(du[:, k]) for k in range(400, 600)]).T
     assert np.max(np.abs(after - batch[:, 400:])) < 1e-9
 

@@ -20,9 +20,9 @@ from tests_paths import PROFILES
 
 from gateway.live.audit import Alarm, WriteEntry
 from gateway.live.compensation import WriterStatus
-from gateway.live.estimator import EstimateUpdate
 from gateway.live.health import GapStatus, Health
 from gateway.live.opcua_server import OpcUaServer, unit_of
+from gateway.live.tracking import EstimateUpdate
 from gateway.model import load_model
 from gateway.profile import load_profile
 from gateway.profile.live import OpcUa

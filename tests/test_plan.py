@@ -12,8 +12,8 @@ from sim_shared import SIM_EXPERIMENTS
 from tests_paths import PROFILES
 
 from gateway.cli import main
-from gateway.estimate import estimate
 from gateway.identify import identify
+from gateway.replay import estimate
 from simulators.machine import load_scenario, simulate
 from simulators.machine.scenario import parse_scenario_text
 

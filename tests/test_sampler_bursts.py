@@ -10,8 +10,8 @@ import pytest
 from test_drivers_support import RunoutSource, live_profile
 
 from gateway.clock import ManualClock
+from gateway.record_store import RecordStore, export_recording
 from gateway.recording import read_for_profile
-from gateway.records import RecordStore, export_recording
 from gateway.sampler import Acquisition
 from gateway.windows import revolution_average
 from simulators.devices import DeviceSetConfig, serve

@@ -12,8 +12,8 @@ from test_drivers_support import ReplaySource
 
 from gateway.clock import ManualClock
 from gateway.profile import load_profile
+from gateway.record_store import RecordStore, export_recording
 from gateway.recording import read_for_profile
-from gateway.records import RecordStore, export_recording
 from gateway.sampler import Acquisition
 from simulators.devices import AdcBoardConfig, DeviceSetConfig, RegisterChannel, serve
 

@@ -5,7 +5,7 @@ State space, per axis (the axes are filtered independently: a probe's axes are m
     estimate(t) = sum_p (1 + g_p) c_p(t) + d(t)
 
 - ``c_p(t)``: the displacement the identified model gives through path p (one per model input), from its
-  own states: the model's one ZOH discretisation (:meth:`gateway.model.LiveEstimator.contributions`, or
+  own states: the model's one ZOH discretisation (:meth:`gateway.model.ModelStepper.contributions`, or
   :meth:`gateway.model.DiscreteModel.contributions` in batch). These states are driven by known inputs
   and carry no noise, so they stay outside the filter's covariance and enter through the measurement row.
 - ``g_p``: the path's relative gain error, a slowly varying parameter. Its prior is the identification's

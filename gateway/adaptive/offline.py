@@ -57,7 +57,7 @@ class ProbedRun:
 def estimate_with_probes(model: ThermalModel, rec: Recording, probes: Sequence[Probe], *, initial: str = "first",
                          gap_policy: str = "hold", history: Recording | None = None,
                          settings: DriftSettings | None = None) -> ProbedRun:
-    """The model over ``rec`` (after ``history``, as :func:`gateway.estimate.estimate`), updated by ``probes``.
+    """The model over ``rec`` (after ``history``, as :func:`gateway.replay.estimate`), updated by ``probes``.
 
     A probe counts from the window it was taken in; probes outside the run's time span are left out.
     """

@@ -9,10 +9,10 @@ from typing import Any
 
 from gateway.commands._common import add_recording_options, load_model_for, read_recordings
 from gateway.errors import GatewayError, UsageError
-from gateway.estimate import ALIGN_CHOICES, INITIAL_STATES, estimate, metrics_json, plot_estimates
 from gateway.prepare import INITIAL_CHOICES
 from gateway.profile import load_profile
 from gateway.recording import continued
+from gateway.replay import ALIGN_CHOICES, INITIAL_STATES, estimate, metrics_json, plot_estimates
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

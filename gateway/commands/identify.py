@@ -86,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     print()
     print("\n".join(identification_summary(result.model)))
     if args.plot:
-        from gateway.estimate import estimate, plot_estimates
+        from gateway.replay import estimate, plot_estimates
 
         ests = [estimate(result.model, r, align="offset", gap_policy=args.gap_policy) for r in [*recs, *prod]]
         plot_estimates(ests, args.plot, title=f"{profile.name}: identification fit ({args.method})")

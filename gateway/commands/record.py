@@ -20,7 +20,7 @@ from gateway.clock import Clock, RealClock, ScaledClock
 from gateway.commands._common import positive_float
 from gateway.errors import GatewayError, UsageError
 from gateway.profile import load_profile
-from gateway.records import STORE_NAME, RecordStore, export_recording
+from gateway.record_store import STORE_NAME, RecordStore, export_recording
 from gateway.windows import WindowRecord, window_index
 
 log = logging.getLogger(__name__)

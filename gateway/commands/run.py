@@ -76,7 +76,7 @@ def _configure_logging(fmt: str, verbose: int) -> None:
 
 def _continue_from(profile: Any, data: Path) -> float:
     """A sped-up clock starts where the store left off, so records stay append-only."""
-    from gateway.records import STORE_NAME, RecordStore
+    from gateway.record_store import STORE_NAME, RecordStore
 
     if not (data / STORE_NAME).exists():
         return 0.0
@@ -92,8 +92,8 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.rt_priority <= 99:
         raise UsageError(f"--rt-priority must be in 0..99. Got {args.rt_priority}")
     model, model_path = load_model_for(profile, args.model)
-    from gateway.live.estimator import column_channel_problems, retention_problems
     from gateway.live.plausibility import model_refusals
+    from gateway.live.tracking import column_channel_problems, retention_problems
 
     problems = column_channel_problems(model, [c.name for c in profile.channels])
     problems += model_refusals(model, profile.name, profile.compensation)

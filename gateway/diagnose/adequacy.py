@@ -23,8 +23,8 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 
 from gateway.diagnose.data import Stack, recording_label
-from gateway.estimate import AxisFigures
 from gateway.model.model import ThermalModel
+from gateway.replay import AxisFigures
 
 #: max |error| beyond this share of the peak |displacement| is unfit for compensation
 MAX_ERROR_SHARE = 0.30

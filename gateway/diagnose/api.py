@@ -45,13 +45,13 @@ from gateway.diagnose.locate import (
 from gateway.diagnose.refit import Reidentified, path_corrections, reidentify
 from gateway.diagnose.search import Options, SearchResult, Trial, search
 from gateway.diagnose.select import make_blocks
-from gateway.estimate import AxisFigures, Estimate, estimate
 from gateway.model.coverage import coverage_of
 from gateway.model.envelope import envelope_of
 from gateway.model.model import ThermalModel
 from gateway.prepare import prepare
 from gateway.profile import Profile
 from gateway.recording import Recording, continued
+from gateway.replay import AxisFigures, Estimate, estimate
 
 
 @dataclass(kw_only=True)

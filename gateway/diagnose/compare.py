@@ -31,8 +31,8 @@ from gateway.diagnose.data import Stack, recording_label
 from gateway.diagnose.refit import Reidentified, held_out_reidentified
 from gateway.diagnose.search import Options, Trial, setting_columns
 from gateway.diagnose.select import BURN_IN, held_out, one_sided_p
-from gateway.estimate import AxisFigures
 from gateway.model.model import ThermalModel
+from gateway.replay import AxisFigures
 
 KEYS = ("identified", "terms", "reidentified")
 #: with this many recordings to judge on, each is left out whole

@@ -19,13 +19,13 @@ from pathlib import Path
 import numpy as np
 
 from gateway.errors import GatewayError
-from gateway.estimate import LEAD_IN_MAX
 from gateway.model.coverage import check_coverage
 from gateway.model.inputs import Column, DerivedInput, evaluate_inputs, hold_missing, initial_values
 from gateway.model.model import PathTF, ThermalModel
 from gateway.model.terms import FirstOrder, Term
 from gateway.prepare import prepare
 from gateway.recording import Recording
+from gateway.replay import LEAD_IN_MAX
 
 
 class DiagnosisError(GatewayError):

@@ -11,7 +11,7 @@ import numpy as np
 from gateway.diagnose.api import Diagnosis, Validation, recording_label
 from gateway.diagnose.refit import identification_length_s
 from gateway.diagnose.search import Term, Trial
-from gateway.estimate import AxisFigures
+from gateway.replay import AxisFigures
 from gateway.strict_json import nan_to_none
 
 

@@ -73,7 +73,7 @@ class AuditLog:
     def __init__(self, path: str | Path | None) -> None:
         self.path = Path(path) if path is not None else None
         if self.path is not None:
-            from gateway.records import private_file
+            from gateway.record_store import private_file
 
             private_file(self.path)  # 0600: what was written to a machine is nobody else's business
         self._lock = threading.Lock()

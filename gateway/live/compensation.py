@@ -53,8 +53,8 @@ from gateway.clock import Clock
 from gateway.errors import CompensationError, DriverError
 from gateway.live.audit import Alarms, AuditLog, WriteEntry
 from gateway.live.cnc import CncLink, CncRejected, CncState
-from gateway.live.estimator import EstimateUpdate
 from gateway.live.plausibility import Plausibility
+from gateway.live.tracking import EstimateUpdate
 from gateway.profile.live import Compensation
 
 log = logging.getLogger(__name__)

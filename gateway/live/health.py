@@ -1,7 +1,7 @@
 """The live gateway's health: one frozen snapshot that OPC UA, the logs, the demo and benchmarks read by attribute.
 
 :meth:`gateway.live.runtime.LiveGateway.health` takes it; every part is itself frozen (the last window's
-:class:`~gateway.windows.WindowRecord`, the :class:`~gateway.live.estimator.EstimateUpdate` that followed
+:class:`~gateway.windows.WindowRecord`, the :class:`~gateway.live.tracking.EstimateUpdate` that followed
 it, the compensation writer's :class:`~gateway.live.compensation.WriterStatus`, the acquisition's
 :class:`~gateway.sampler.DeviceStatus` per device, the active :class:`~gateway.live.audit.Alarm` s), so a
 snapshot handed to another thread cannot change under it, and a misspelt field is an ``AttributeError``
@@ -17,7 +17,7 @@ from types import MappingProxyType
 
 from gateway.live.audit import Alarm
 from gateway.live.compensation import WriterStatus
-from gateway.live.estimator import EstimateUpdate
+from gateway.live.tracking import EstimateUpdate
 from gateway.sampler import DeviceStatus
 from gateway.windows import WindowRecord
 

@@ -4,7 +4,7 @@
   Modbus connection) every ``poll_s`` of clock time; a block with a new sequence number or other values is
   a probe, stamped with the clock time it was read. A block that is no probe (a bad axis mask, a value
   out of range, no uncertainty) is refused with the register named, in the log and the audit log, once.
-- :class:`ProbedEstimator` is the live :class:`~gateway.live.estimator.Estimator` with the update of
+- :class:`ProbedTracker` is the live :class:`~gateway.live.tracking.DisplacementTracker` with the update of
   :mod:`gateway.adaptive.filter` on top: it steps the filter with the model's per-path contributions at every
   window the model steps (a filled gap too), then applies the probes read by that window's end. Each probe
   is stored in ``records.sqlite`` (table ``probes``, with the window after which it was applied) BEFORE it
@@ -13,7 +13,7 @@
 - The estimate it hands on is the updated one, with its band (``EstimateUpdate.sd_um``: the 95 % half-band
   / 1.96); with ``band_limit_um`` set, a window whose band on any axis is wider is not usable: the writer
   holds the offsets and says why (alarm ``inputs``, audited).
-- On start, :meth:`ProbedEstimator.rebuild` replays the same stored windows as the model's rebuild and the
+- On start, :meth:`ProbedTracker.rebuild` replays the same stored windows as the model's rebuild and the
   stored probes after the same windows, so the filter's state is a pure function of the store: a restart
   gives what an uninterrupted run had, to rounding, as long as the store holds the run from its first window
   (probes older than the replayed history, 20 x the model's slowest time constant, are forgotten).
@@ -35,9 +35,9 @@ from gateway.adaptive.filter import Z95, AdaptiveEstimator, DriftSettings
 from gateway.adaptive.probes import PROBE_BLOCK_WORDS, Probe, ProbeDecision, decode_probe_block
 from gateway.clock import Clock
 from gateway.errors import CompensationError, DriverError, RecordingError
-from gateway.live.estimator import EstimateUpdate, Estimator
+from gateway.live.tracking import DisplacementTracker, EstimateUpdate
 from gateway.profile.probes import Probes
-from gateway.records import ProbeStore
+from gateway.record_store import ProbeStore
 from gateway.windows import WindowRecord
 
 log = logging.getLogger("gateway.live.probes")
@@ -131,10 +131,10 @@ class ProbeReader:
             self._link = None
 
 
-class ProbedEstimator(Estimator):
+class ProbedTracker(DisplacementTracker):
     """The live estimator updated by probes (see the module docstring).
 
-    Extra keyword arguments beyond :class:`~gateway.live.estimator.Estimator`'s: ``probes`` (the ``[probes]``
+    Extra keyword arguments beyond :class:`~gateway.live.tracking.DisplacementTracker`'s: ``probes`` (the ``[probes]``
     settings), ``store`` (a :class:`ProbeStore`), ``source`` (a callable giving the probes read since the
     last call, e.g. :meth:`ProbeReader.take`), ``audit`` (an audit log) and ``clock``.
     """
@@ -152,9 +152,9 @@ class ProbedEstimator(Estimator):
         self._waiting: list[Probe] = []
         self.decisions: list[ProbeDecision] = []
 
-    # -- the hooks of Estimator ---------------------------------------------------------------------------
+    # -- the hooks of DisplacementTracker ---------------------------------------------------------------------------
     def _stepped(self, index: int) -> None:
-        self.adaptive.step(self.estimator.contributions(), (index + 1) * self.window_s)
+        self.adaptive.step(self.stepper.contributions(), (index + 1) * self.window_s)
 
     def _rebuilt(self, first_index: int, du: np.ndarray) -> None:
         contributions = self.dm.contributions(du)

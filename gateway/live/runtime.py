@@ -2,7 +2,7 @@
 
 Data path per finished window, on the window closer's thread (heavy work stays off the samplers)::
 
-    samplers -> WindowCloser -> RecordStore.append (durable first) -> Estimator.update -> writer.submit
+    samplers -> WindowCloser -> RecordStore.append (durable first) -> DisplacementTracker.update -> writer.submit
                                                                                        -> health, OPC UA, log
 
 Store-first by construction: the window closer has one sink, :meth:`LiveGateway._on_window`, which hands a
@@ -36,12 +36,12 @@ from gateway.errors import ModelError, ProfileError
 from gateway.live.audit import AUDIT_NAME, Alarms, AuditLog
 from gateway.live.cnc import CncLink
 from gateway.live.compensation import CompensationWriter
-from gateway.live.estimator import EstimateUpdate, Estimator, history_windows, retention_problems
 from gateway.live.health import GapStatus, Health
 from gateway.live.plausibility import Plausibility, model_refusals
+from gateway.live.tracking import DisplacementTracker, EstimateUpdate, history_windows, retention_problems
 from gateway.model import ThermalModel
 from gateway.profile import Profile
-from gateway.records import STORE_NAME, ProbeStore, RecordStore, private_dir
+from gateway.record_store import STORE_NAME, ProbeStore, RecordStore, private_dir
 from gateway.windows import WindowRecord
 
 log = logging.getLogger("gateway.live")
@@ -85,7 +85,7 @@ class LiveGateway:
         self.store: RecordStore | None = None
         self.audit: AuditLog | None = None
         self.alarms: Alarms | None = None
-        self.estimator: Estimator | None = None
+        self.tracker: DisplacementTracker | None = None
         self.writer: CompensationWriter | None = None
         self.plausibility: Plausibility | None = None
         self.opcua: Any = None
@@ -155,28 +155,28 @@ class LiveGateway:
         else:
             self.writer.service()
 
-        estimator_args: dict[str, Any] = {"window_s": p.sampling.window_s, "live": p.live,
+        tracker_args: dict[str, Any] = {"window_s": p.sampling.window_s, "live": p.live,
                                           "channels": {f.name: f.channel for f in p.factors},
                                           "channel_names": [c.name for c in p.channels]}
         if p.probes.enabled:  # the model updated by the CNC's probes (gateway.adaptive)
-            from gateway.live.probes import ProbedEstimator, ProbeReader
+            from gateway.live.probes import ProbedTracker, ProbeReader
 
             self.probe_store = ProbeStore(self.data_dir / STORE_NAME)
             self.probes = ProbeReader(p.probes, clock=self.clock, audit=self.audit, link_factory=lambda: CncLink(
                 p.compensation, clock=self.clock, name="cnc-probes"))
-            self.estimator = ProbedEstimator(self.model, probes=p.probes, store=self.probe_store,
+            self.tracker = ProbedTracker(self.model, probes=p.probes, store=self.probe_store,
                                              source=self.probes.take, audit=self.audit, clock=self.clock,
-                                             **estimator_args)
+                                             **tracker_args)
         else:
-            self.estimator = Estimator(self.model, **estimator_args)
+            self.tracker = DisplacementTracker(self.model, **tracker_args)
         if self.store.last_index is not None:
             since = self.store.last_index + 1 - history_windows(self.model, p.sampling.window_s, p.live)
             t0 = time.perf_counter()
-            n = self.estimator.rebuild(self.store.windows(since=since),
+            n = self.tracker.rebuild(self.store.windows(since=since),
                                        origin=self.store.first() if self.model.inputs else None)
-            gaps = self.estimator.history.gaps
+            gaps = self.tracker.history.gaps
             log.info("estimator rebuilt from %d stored windows (%d filled by gap policy %s) in %.2f s", n,
-                     self.estimator.history.filled_total, p.live.gap_policy, time.perf_counter() - t0)
+                     self.tracker.history.filled_total, p.live.gap_policy, time.perf_counter() - t0)
             for g in gaps[-3:]:
                 self.audit.event(now, "gap", "history", g.describe(p.sampling.window_s))
             self.audit.event(now, "rebuild", "estimator", f"{n} windows replayed up to window {self.store.last_index}")
@@ -304,10 +304,10 @@ class LiveGateway:
         self._on_record(record)
 
     def _on_record(self, record: WindowRecord) -> None:
-        assert self.estimator is not None
+        assert self.tracker is not None
         assert self.writer is not None
         t0 = time.perf_counter()
-        update = self.estimator.update(record)
+        update = self.tracker.update(record)
         self.update_s.append(time.perf_counter() - t0)
         self.writer.submit(update, since_wall=t0)
         if self.stepped:
@@ -316,7 +316,7 @@ class LiveGateway:
             self.windows_live += 1
             self.last_record = record
         if update.filled and not (update.first_live and update.filled == 1):
-            gap = self.estimator.history.gaps[-1]
+            gap = self.tracker.history.gaps[-1]
             if self.audit is not None:
                 self.audit.event(self.clock.now(), "gap", "estimator", gap.describe(self.profile.sampling.window_s))
         self._log_window(record, update)
@@ -379,7 +379,7 @@ class LiveGateway:
         devices = self.acquisition.status() if self.acquisition is not None else ()
         if wall > 0 and not self.stepped:
             devices = tuple(replace(d, rate_hz=d.reads_ok / wall) for d in devices)
-        est = self.estimator
+        est = self.tracker
         hist = est.history if est is not None else None
         live = self.profile.live
         return Health(

@@ -3,7 +3,7 @@
 from gateway.model.discrete import Section
 from gateway.model.model import (
     DiscreteModel,
-    LiveEstimator,
+    ModelStepper,
     PathTF,
     ThermalModel,
     load_model,
@@ -13,6 +13,6 @@ from gateway.model.model import (
 from gateway.model.terms import FirstOrder, SecondOrder, Term
 
 __all__ = [
-    "DiscreteModel", "FirstOrder", "LiveEstimator", "PathTF", "SecondOrder", "Section", "Term",
+    "DiscreteModel", "FirstOrder", "ModelStepper", "PathTF", "SecondOrder", "Section", "Term",
     "ThermalModel", "load_model", "model_to_toml", "save_model",
 ]

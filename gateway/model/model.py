@@ -240,12 +240,12 @@ class DiscreteModel:
                 out[i, j] += gain * sec.filter(du[j])
         return out
 
-    def live(self) -> LiveEstimator:
-        return LiveEstimator(self)
+    def stepper(self) -> ModelStepper:
+        return ModelStepper(self)
 
 
-class LiveEstimator:
-    """Step-by-step estimator: one window in, one displacement per axis out; constant work per step.
+class ModelStepper:
+    """The model stepped one window at a time: one window's inputs in, one displacement per axis out; constant work.
 
     Its state is a pure function of the input history (:meth:`from_history` rebuilds it), so after a
     restart it is recomputed from the durable records instead of being persisted.
@@ -294,7 +294,7 @@ class LiveEstimator:
         return du, xs, y
 
     @classmethod
-    def from_history(cls, dm: DiscreteModel, du: np.ndarray) -> LiveEstimator:
+    def from_history(cls, dm: DiscreteModel, du: np.ndarray) -> ModelStepper:
         """The estimator as it would be after stepping through ``du`` (factors, N), computed in batch."""
         est = cls(dm)
         du = np.asarray(du, dtype=float)

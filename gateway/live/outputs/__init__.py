@@ -23,7 +23,7 @@ from typing import Any, Protocol
 
 from gateway.live.audit import Alarm
 from gateway.live.compensation import WriterStatus
-from gateway.live.estimator import EstimateUpdate
+from gateway.live.tracking import EstimateUpdate
 from gateway.profile import Profile
 from gateway.windows import WindowRecord
 

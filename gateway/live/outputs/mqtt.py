@@ -106,7 +106,7 @@ class MqttOutput:
         import paho.mqtt.client as paho
 
         s = self.settings
-        from gateway.records import private_dir
+        from gateway.record_store import private_dir
 
         private_dir(self.data_dir)
         self.outbox = Outbox(self.data_dir / OUTBOX_NAME, machine=self.machine)

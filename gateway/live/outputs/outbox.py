@@ -34,7 +34,7 @@ class Outbox:
     def __init__(self, path: str | Path, *, machine: str) -> None:
         self.path = Path(path)
         self._lock = threading.Lock()
-        from gateway.records import private_file
+        from gateway.record_store import private_file
 
         private_file(self.path)  # 0600 like the records: the same machine's data
         try:

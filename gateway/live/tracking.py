@@ -1,6 +1,10 @@
-"""The live estimate: one estimator step per finished window, rebuilt from the durable records on start.
+"""Tracking the displacement live: one model step per finished window, rebuilt from the durable records on start.
 
-The estimator's state is a pure function of the factor history (``LiveEstimator.from_history``), so nothing
+:class:`DisplacementTracker` turns each committed window into an estimate (:class:`EstimateUpdate`) with the
+model's one stepper (:class:`~gateway.model.ModelStepper`), the gap policy and the derived inputs; the
+offline counterpart is :mod:`gateway.replay` (``cncgw estimate``), the same discretisation in batch.
+
+The estimator's state is a pure function of the factor history (``ModelStepper.from_history``), so nothing
 private is persisted: on start the history is read back from the record store and the state recomputed in
 batch; a ``kill -9`` loses nothing the store had committed.
 
@@ -41,7 +45,7 @@ import numpy as np
 
 from gateway.adaptive.filter import Z95
 from gateway.errors import ModelError
-from gateway.model import LiveEstimator, ThermalModel
+from gateway.model import ModelStepper, ThermalModel
 from gateway.model.coverage import check_coverage
 from gateway.model.inputs import Column, InputStepper, Product, initial_values
 from gateway.profile.live import Live
@@ -255,8 +259,8 @@ def retention_problems(model: ThermalModel, profile: Any) -> list[str]:
             f"expected >= {need_days:.3g}, or a shorter [live] history_max_h"]
 
 
-class Estimator:
-    """The live estimator of one model at one window length; steps on each record (a sink).
+class DisplacementTracker:
+    """Keeps the live displacement estimate of one model at one window length; steps on each record (a sink).
 
     Args:
         model: the identified model (inputs are deviations from ``model.reference``).
@@ -280,7 +284,7 @@ class Estimator:
         self.window_s = float(window_s)
         self.live = live
         self.dm = model.discretize(window_s)
-        self.estimator: LiveEstimator = self.dm.live()
+        self.stepper: ModelStepper = self.dm.stepper()
         self.history = FactorHistory(model, window_s, live, channels)
         self.last: EstimateUpdate | None = None
         self.rebuilt_windows = 0
@@ -310,11 +314,11 @@ class Estimator:
         if not cols:
             return 0
         du = np.concatenate(cols, axis=1)
-        self.estimator = LiveEstimator.from_history(self.dm, du)
+        self.stepper = ModelStepper.from_history(self.dm, du)
         self.rebuilt_windows = du.shape[1]
         self._rebuilt(last.index - du.shape[1] + 1 if last is not None else 0, du)
         assert last is not None
-        y = self.estimator.output()
+        y = self.stepper.output()
         self.last = EstimateUpdate(index=last.index, end_s=last.end_s, estimate_um=self._axes_map(y),
                                    next_um=self._predict(du[:, -1]),
                                    factors=MappingProxyType(dict(last.factors)), usable=False,
@@ -340,14 +344,14 @@ class Estimator:
 
     def _predict(self, du: np.ndarray) -> Mapping[str, float]:
         """The estimate one window ahead if the inputs stay at ``du`` (the state is not touched)."""
-        return self._axes_map(self.estimator.peek(du))
+        return self._axes_map(self.stepper.peek(du))
 
     def update(self, record: WindowRecord) -> EstimateUpdate:
         """Step through ``record`` (and any windows missing before it); return the new estimate."""
         cols, filled, reason = self.history.advance(record)
         y = None
         for k in range(cols.shape[1]):
-            y = self.estimator.step(cols[:, k])
+            y = self.stepper.step(cols[:, k])
             self._stepped(record.index - cols.shape[1] + 1 + k)
         assert y is not None
         inputs = "window" if not reason else "held" if self.history.holds(record.index) else "reference"

@@ -17,8 +17,8 @@ from test_drivers_support import live_profile
 from gateway.cli import main
 from gateway.clock import ManualClock
 from gateway.errors import RecordingError
+from gateway.record_store import STORE_NAME, RecordStore, export_recording
 from gateway.recording import read_for_profile
-from gateway.records import STORE_NAME, RecordStore, export_recording
 from gateway.sampler import Acquisition
 from simulators.devices import DeviceSetConfig, serve
 from simulators.machine import LiveMachine
