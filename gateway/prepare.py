@@ -16,6 +16,13 @@ Derived inputs (``inputs``, see :mod:`gateway.model.inputs`) are computed from t
 time stamps and the recording's other columns, and enter ``du`` after the factors as deviations from
 their value in the same initial equilibrium.
 
+Probe points (``probe_points=True``, for identification and diagnosis): a recording whose displacement is
+measured only at a CNC's probe cycles carries it either in sparse displacement columns (empty except at the
+probe instants) or, as ``cncgw record --export-only`` writes it from a gateway with ``[probes]``, in
+``probe_<axis>_um`` columns with ``probe_sd_um`` beside them (each probe on the row of the window it was
+applied after: the displacement at that window's end). Without any measured displacement column, those
+probe columns are the measured displacement, and ``y_sd`` the probes' stated uncertainty.
+
 Gaps (missing windows) are never interpolated silently: ``gap_policy="hold"`` assumes the factors of the
 last window before the gap went on, ``"reference"`` assumes the machine stood idle at the reference
 state; either way the rows stay marked missing and carry no measured displacement.
@@ -33,6 +40,13 @@ from gateway.model.inputs import Column, DerivedInput, evaluate_inputs, initial_
 from gateway.recording import Recording
 
 INITIAL_CHOICES = ("first", "reference")
+#: a recording whose displacement is measured on fewer than this share of its windows is sampled (probes)
+SPARSE_SHARE = 0.5
+#: a recording sampled by probes informs an axis with at least this many points: its own zero takes one
+MIN_PROBE_POINTS = 3
+#: the probe columns ``cncgw record --export-only`` writes (gateway.record_store.export_recording)
+PROBE_AXIS_COLUMN = "probe_{axis}_um"
+PROBE_SD_COLUMN = "probe_sd_um"
 GAP_POLICIES = ("hold", "reference")
 
 
@@ -51,10 +65,20 @@ class Prepared:
     y: np.ndarray  # NaN where not measured (gaps, empty cells, axis not recorded)
     present: np.ndarray
     notes: tuple[str, ...] = ()
+    #: the stated standard uncertainty (um) of each measured value, NaN where none is stated (sensor rows)
+    y_sd: np.ndarray | None = None
+    #: where ``y`` comes from: "displacement" (the displacement columns) or "probes" (probe_* columns)
+    y_source: str = "displacement"
 
     @property
     def n(self) -> int:
         return self.du.shape[1]
+
+    @property
+    def sparse(self) -> bool:
+        """Measured at a few instants only (probe cycles): on no axis at :data:`SPARSE_SHARE` of the windows."""
+        counts = np.isfinite(self.y).sum(axis=1)
+        return bool(counts.any()) and bool(np.all(counts < SPARSE_SHARE * max(int(self.present.sum()), 1)))
 
 
 def prepare(
@@ -66,6 +90,7 @@ def prepare(
     reference: Mapping[str, float] | None = None,
     gap_policy: str = "hold",
     inputs: Sequence[DerivedInput] = (),
+    probe_points: bool = False,
 ) -> Prepared:
     """Turn ``rec`` into deviations from its initial equilibrium; see the module docstring."""
     if initial not in INITIAL_CHOICES:
@@ -127,9 +152,33 @@ def prepare(
     for i, a in enumerate(axes):
         if a in rec.displacement:
             y[i] = rec.displacement[a]
+    y_sd = None
+    source = "displacement"
+    if probe_points:
+        y, y_sd, source = _probe_points(rec, axes, y)
     y[:, ~rec.present] = np.nan
     return Prepared(name=rec.name, dt_s=rec.period_s, time_s=np.asarray(rec.time_s), du=du,
-                    u0=u0, y=y, present=np.asarray(rec.present), notes=tuple(notes))
+                    u0=u0, y=y, present=np.asarray(rec.present), notes=tuple(notes), y_sd=y_sd, y_source=source)
+
+
+def _probe_points(rec: Recording, axes: Sequence[str], y: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+    """(y, its stated sd, source): the displacement columns, else the probe_* columns (module docstring)."""
+    sd_col = rec.extras.get(PROBE_SD_COLUMN)
+    sd = np.full(y.shape, np.nan)
+    if np.isfinite(y).any():
+        if sd_col is not None:  # sparse displacement columns with the probes' uncertainty beside them
+            sd[:] = np.where(np.isfinite(y), sd_col[None, :], np.nan)
+        return y, sd, "displacement"
+    cols = {i: rec.extras.get(PROBE_AXIS_COLUMN.format(axis=a)) for i, a in enumerate(axes)}
+    if not any(c is not None and np.isfinite(c).any() for c in cols.values()):
+        return y, sd, "displacement"
+    y = np.full(y.shape, np.nan)
+    for i, c in cols.items():
+        if c is not None:
+            y[i] = c
+            if sd_col is not None:
+                sd[i] = np.where(np.isfinite(c), sd_col, np.nan)
+    return y, sd, "probes"
 
 
 def _derived(rec: Recording, inputs: Sequence[DerivedInput], factors: Sequence[str], u: np.ndarray,

@@ -37,7 +37,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "gateway is sampling)")
     p.add_argument("--production", nargs="+", default=[], metavar="RUN",
                    help="joint method: production runs with measured displacement, fitted with the experiments "
-                        "(each its own offset; factors referred to the experiments' rest levels)")
+                        "(each its own offset; factors referred to the experiments' rest levels); displacement "
+                        "measured only at probe cycles counts (sparse displacement columns, or the probe_* "
+                        "columns cncgw record --export-only writes), each probe weighted by its probe_sd_um")
     p.add_argument("--production-initial", choices=("rest", "fit"), default="rest",
                    help="a production run starts at rest (default: after a night at rest) or warm: fit its "
                         "initial state as free decays")
@@ -60,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
     profile = load_profile(args.profile)
     structures = args.structures
     recs = read_recordings(args.experiments, profile, period_s=args.period_s, require_displacement=True)
-    prod = read_recordings(args.production, profile, period_s=args.period_s, require_displacement=True)
+    # a production run may carry its displacement as probe points only (probe_* columns): checked in identify
+    prod = read_recordings(args.production, profile, period_s=args.period_s, require_displacement=False)
     if prod and args.method != "joint":
         raise UsageError("--production: production runs join the joint method only (--method joint)")
     total = len(profile.axes) * (len(structures) if args.method == "joint" else len(profile.factors))

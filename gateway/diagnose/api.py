@@ -44,7 +44,7 @@ from gateway.diagnose.locate import (
 )
 from gateway.diagnose.refit import Reidentified, path_corrections, reidentify
 from gateway.diagnose.search import Options, SearchResult, Trial, search
-from gateway.diagnose.select import make_blocks
+from gateway.diagnose.select import BURN_IN, make_blocks
 from gateway.model.coverage import coverage_of
 from gateway.model.envelope import envelope_of
 from gateway.model.model import ThermalModel
@@ -293,10 +293,21 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
     span_h = max(b - a for a, b in st.bounds) * st.dt_s / 3600.0
     total_h = st.n * st.dt_s / 3600.0
     k = int(block.max()) + 1 if (block >= 0).any() else 0
-    block_h = float(np.sum(block >= 0)) * st.dt_s / 3600.0 / max(k, 1)
+    # the time the held-out blocks span: from each recording's burn-in to its last scored window (probe points
+    # stand for the hours between them, not a window each)
+    held_s = 0.0
+    for a, b in st.bounds:
+        held = np.flatnonzero(block[a:b] >= 0)
+        if held.size:
+            burn = np.flatnonzero(block[a:b] == BURN_IN)
+            held_s += float(st.time_s[a + held[-1]] - st.time_s[a + (burn[-1] if burn.size else 0)])
+    block_h = held_s / max(k, 1) / 3600.0
     out.append(f"{len(st.names)} recording(s), {total_h:.1f} h in all (longest {span_h:.1f} h); judged on {k} "
                f"held-out blocks of about {block_h:.1f} h (the first block of each recording only fits the initial "
                "state)")
+    # recordings measured at probe instants only, and those without any measured displacement: said up front
+    out += [n for n in st.notes if ": displacement measured at " in n and "probe instants only" in n]
+    out += [n for n in st.notes if ": no measured displacement (no displacement or probe_* columns" in n]
     if k < 6:
         out.append(f"only {k} held-out blocks: the tests have little power; record longer to conclude more")
     moving = [f for f in st.factors if np.nanmax(np.abs(st.du[f])) > 0] if st.factors else []

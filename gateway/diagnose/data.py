@@ -23,7 +23,7 @@ from gateway.model.coverage import check_coverage
 from gateway.model.inputs import Column, DerivedInput, evaluate_inputs, hold_missing, initial_values
 from gateway.model.model import PathTF, ThermalModel
 from gateway.model.terms import FirstOrder, Term
-from gateway.prepare import prepare
+from gateway.prepare import MIN_PROBE_POINTS, Prepared, prepare
 from gateway.recording import Recording
 from gateway.replay import LEAD_IN_MAX
 
@@ -79,6 +79,10 @@ class Stack:
     contributions: np.ndarray  # (A, inputs, N) the model's prediction per input
     notes: list[str] = field(default_factory=list)
     fingerprints: tuple[str, ...] = ()  # per recording (:meth:`Recording.fingerprint` of the model's factors)
+    #: (A, N) the stated uncertainty of each measured value (probes' probe_sd_um), NaN where none is stated
+    y_sd: np.ndarray | None = None
+    #: per recording: measured only at probe instants (:attr:`gateway.prepare.Prepared.sparse`)
+    sampled: tuple[bool, ...] = ()
     _cache: dict[object, object] = field(default_factory=dict, repr=False)
 
     @property
@@ -227,10 +231,14 @@ def build_stack(model: ThermalModel, recordings: Sequence[Recording], *, gap_pol
     extra_names = sorted({k for r in recordings for k in r.extras})
     extras: dict[str, list[np.ndarray]] = {k: [] for k in extra_names}
     start = 0
+    sds, sampled = [], []
     for rec in recordings:
         p = prepare(rec, factors=model.factors, axes=model.axes, initial="first", gap_policy=gap_policy,
-                    inputs=model.inputs)
+                    inputs=model.inputs, probe_points=True)
         notes += [f"{p.name}: {n}" for n in p.notes]
+        notes += _measured_note(p, rec, model.axes)
+        sds.append(p.y_sd if p.y_sd is not None else np.full(p.y.shape, np.nan))
+        sampled.append(p.sparse)
         if model.coverage is not None:  # where the model extrapolates, a residual is not missing physics alone
             notes += [f"{p.name}: {n}" for n in
                       check_coverage(model.coverage, p.du, model.factors, model.units).notes(dt)]
@@ -261,7 +269,31 @@ def build_stack(model: ThermalModel, recordings: Sequence[Recording], *, gap_pol
                  raw={k: np.concatenate(v) for k, v in raw.items()},
                  extras={k: np.concatenate(v) for k, v in extras.items()}, y=y,
                  base=np.concatenate(bases, axis=1), contributions=np.concatenate(contribs, axis=2),
-                 notes=notes, fingerprints=tuple(prints))
+                 notes=notes, fingerprints=tuple(prints), y_sd=np.concatenate(sds, axis=1), sampled=tuple(sampled))
+
+
+def _measured_note(p: Prepared, rec: Recording, axes: Sequence[str]) -> list[str]:
+    """What of a recording can be scored: nothing (said), or its probe points only (said, counted).
+
+    A recording measured only at probe cycles is scored at those instants; one with fewer than
+    :data:`MIN_PROBE_POINTS` on every axis cannot be judged (its first point only fixes its zero) and is an error.
+    """
+    counts = np.isfinite(p.y).sum(axis=1)
+    if not counts.any():
+        return [f"{rec.source}: no measured displacement (no displacement or probe_* columns with values): its "
+                "factors are simulated with the others, none of its windows is scored"]
+    if not p.sparse:
+        return []
+    per_axis = ", ".join(f"{a} {int(c)}" for a, c in zip(axes, counts, strict=True))
+    instants = int(np.isfinite(p.y).any(axis=0).sum())
+    what = "probe columns" if p.y_source == "probes" else "sparse displacement columns"
+    if counts.max() < MIN_PROBE_POINTS:
+        raise DiagnosisError(
+            f"{rec.source}: {instants} probe instant(s) in its {what} ({per_axis}): a recording measured by probes "
+            f"needs at least {MIN_PROBE_POINTS} on an axis to be judged (its first measured point fixes its zero); "
+            "join a longer run or probe more often")
+    return [f"{rec.source}: displacement measured at {instants} probe instants only (its {what}; {per_axis}): "
+            "scored at those instants, nowhere else"]
 
 
 def log_grid(lo: float, hi: float, per_decade: float = 5.0) -> list[float]:

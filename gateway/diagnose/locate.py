@@ -74,6 +74,18 @@ def noise_level(stack: Stack, axis: int, residual: np.ndarray) -> Noise:
         diffs.append(d[np.isfinite(d)])
     d = np.concatenate(diffs) if diffs else np.zeros(0)
     sigma = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / math.sqrt(2) if d.size else 0.0
+    if d.size < 20:
+        # measured at probe instants only: no two neighbouring windows to difference; the probes' stated
+        # uncertainty, else the spread of successive points' differences (drift included: an upper bound)
+        sd = stack.y_sd[axis][np.isfinite(stack.y[axis])] if stack.y_sd is not None else np.zeros(0)
+        sd = sd[np.isfinite(sd)]
+        if sd.size:
+            sigma = max(sigma, float(np.median(sd)))
+        else:
+            steps = [np.diff(residual[a:b][np.isfinite(residual[a:b])]) for a, b in stack.bounds]
+            dd = np.concatenate(steps) if steps else np.zeros(0)
+            if dd.size:
+                sigma = max(sigma, 1.4826 * float(np.median(np.abs(dd - np.median(dd)))) / math.sqrt(2))
     q = quantum(stack.y[axis])
     sigma = max(sigma, q / math.sqrt(12), 1e-6)
     return Noise(sigma_um=sigma, quantum_um=q, band_um=max(3 * sigma, q))

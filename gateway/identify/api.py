@@ -20,7 +20,7 @@ from gateway.identify.shrink import AxisShrinkage, shrink_axis
 from gateway.model.coverage import coverage_of
 from gateway.model.envelope import envelope_of
 from gateway.model.model import ThermalModel, model_problems
-from gateway.prepare import prepare
+from gateway.prepare import MIN_PROBE_POINTS, Prepared, prepare
 from gateway.recording import Recording
 
 METHODS = ("joint", "paper")
@@ -126,8 +126,9 @@ def _identify(
         preps.append(p)
     # the rest levels are the experiments' (each starts in equilibrium); production runs are referred to them
     reference = {f: float(np.mean([p.u0[j] for p in preps])) for j, f in enumerate(factors)}
-    prod_preps = [prepare(rec, factors=factors, axes=axes, initial="reference", reference=reference,
-                          gap_policy=gap_policy) for rec in production]
+    prod_preps = [_probed(prepare(rec, factors=factors, axes=axes, initial="reference", reference=reference,
+                                  gap_policy=gap_policy, probe_points=True), rec, axes, notes)
+                  for rec in production]
     names = [p.name for p in preps]
     for p in prod_preps:
         if p.name in names:  # two recordings of one name would be one experiment in the report
@@ -141,6 +142,9 @@ def _identify(
                 notes.append(f"{p.name}: no measured displacement on axis {a}; it does not inform axis {a}")
     preps = [replace(p, name=n) for p, n in zip(preps, names, strict=True)]
     es = ExperimentSet.from_prepared(preps, factors=factors, axes=axes)
+    weight, sd_ref = _probe_weights(preps, production)
+    if weight is not None:
+        es = replace(es, weight=weight)
     if prod_preps and production_initial == "fit":
         es = _with_initial_decays(es, range(len(recordings), len(preps)))
     act = active_factors(es)
@@ -168,6 +172,10 @@ def _identify(
         info["production_runs"] = list(es.names[len(recordings):])
         info["production_fingerprints"] = [r.fingerprint(factors) for r in production]
         info["production_initial"] = production_initial
+        # how many measured points each run gave per axis: a run sampled by probes gives a few
+        info["production_points"] = {p.name: {a: int(np.isfinite(p.y[i]).sum()) for i, a in enumerate(axes)}
+                                     for p in preps[len(recordings):]}
+        report += _production_report(preps[len(recordings):], axes, sd_ref)
     if method == "joint":
         fit_axes = _select_axes_in_processes if jobs > 1 and len(axes) > 1 and _can_fork() else _select_axes
         for i, sel in enumerate(fit_axes(es, list(active), candidates, prune, progress, jobs)):
@@ -199,6 +207,10 @@ def _identify(
                          paths={(p.axis, p.factor): p for p in paths}, machine=machine, info=info)
     # what these experiments support: the live gateway holds the offsets beyond it (gateway.live.plausibility)
     what = f"{len(recordings)} experiments" + (f" and {len(production)} production runs" if production else "")
+    sampled = [p for p in preps[len(recordings):] if p.sparse]
+    if sampled:
+        what += (f" ({sum(int(np.isfinite(p.y).any(axis=0).sum()) for p in sampled)} probe instants in "
+                 f"{len(sampled)} of them)")
     envelope = envelope_of(model, ((p.du, p.y) for p in preps), window_s=es.dt_s,
                            source=f"identification: {what}")
     # where in factor space the model was fitted: estimate, run and diagnose say when a recording leaves it
@@ -212,6 +224,91 @@ def _identify(
             + "\n".join(problems))
     return IdentifyResult(model=model, method=method, experiments=es.names, wall_s=time.perf_counter() - t0,
                           report=report, selections=selections, notes=notes, shrinkage=shrinkage)
+
+
+def _probed(p: Prepared, rec: Recording, axes: Sequence[str], notes: list[str]) -> Prepared:
+    """A production run's measured points checked: some on an axis, enough where it is sampled by probes.
+
+    A run measured only at probe cycles informs an axis with :data:`MIN_PROBE_POINTS` points or more (its own
+    offset takes one); an axis with fewer is left out of it with a note, a run with fewer on every axis is an
+    error naming the file and the counts.
+    """
+    counts = np.isfinite(p.y).sum(axis=1)
+    if not counts.any():
+        raise IdentificationError(
+            f"{rec.source}: no measured displacement: a production run joins identification with displacement "
+            f"columns ({', '.join(f'{a}_um' for a in axes)} as the profile names them) or probe columns "
+            f"({', '.join(f'probe_{a}_um' for a in axes)}, probe_sd_um: cncgw record --export-only writes them "
+            "from a gateway with [probes])")
+    if not p.sparse:
+        return p
+    what = "probe columns" if p.y_source == "probes" else "sparse displacement columns"
+    per_axis = ", ".join(f"{a} {int(c)}" for a, c in zip(axes, counts, strict=True))
+    if counts.max() < MIN_PROBE_POINTS:
+        raise IdentificationError(
+            f"{rec.source}: {int(np.isfinite(p.y).any(axis=0).sum())} probe instant(s) in its {what} ({per_axis}): "
+            f"a production run sampled by probes needs at least {MIN_PROBE_POINTS} on an axis (its own offset "
+            "takes one, the others inform the paths); join a longer run or probe more often")
+    y = p.y.copy()
+    for i, a in enumerate(axes):
+        if 0 < counts[i] < MIN_PROBE_POINTS:
+            y[i] = np.nan
+            notes.append(f"{p.name}: only {int(counts[i])} probe point(s) on axis {a} (at least {MIN_PROBE_POINTS} "
+                         f"needed: its own offset takes one); it does not inform axis {a}")
+    return replace(p, y=y)
+
+
+def _probe_weights(preps: Sequence[Prepared], production: Sequence[Recording]
+                   ) -> tuple[np.ndarray | None, float]:
+    """Least-squares weights (A, E, N) from the probes' stated uncertainty, and the reference sd (um).
+
+    A point with a stated uncertainty sd weighs (sd_ref / sd)^2, sd_ref the median stated over all points: a
+    probe of typical uncertainty weighs as one window of sensor data, a better one more, a poorer one less.
+    (Measured on the simulated machine, a production day probed every 1, 2 or 4 h: weighing every probe 10x
+    or as the windows between probes gave no better prediction of another day, see README.)
+    """
+    from gateway.adaptive.probes import SD_MAX_UM
+
+    sds = [p.y_sd[np.isfinite(p.y) & np.isfinite(p.y_sd)] for p in preps if p.y_sd is not None]
+    stated = np.concatenate(sds) if sds else np.zeros(0)
+    if not stated.size:
+        return None, math.nan
+    sources = {p.name: r.source for p, r in zip(preps[len(preps) - len(production):], production, strict=True)}
+    for p in preps:
+        if p.y_sd is None:
+            continue
+        bad = np.isfinite(p.y) & np.isfinite(p.y_sd) & ~((p.y_sd > 0) & (p.y_sd <= SD_MAX_UM))
+        if bad.any():
+            k = int(np.flatnonzero(bad.any(axis=0))[0])
+            raise IdentificationError(
+                f"{sources.get(p.name, p.name)}: column probe_sd_um at t={p.time_s[k]:g} s: "
+                f"{float(p.y_sd[bad][0])!r} um: expected a probe's standard uncertainty in (0, {SD_MAX_UM:g}] um")
+    sd_ref = float(np.median(stated))
+    n = max(p.n for p in preps)
+    weight = np.ones((preps[0].y.shape[0], len(preps), n))
+    for e, p in enumerate(preps):
+        if p.y_sd is not None:
+            stated = np.isfinite(p.y_sd)
+            weight[:, e, : p.n] = np.where(stated, (sd_ref / np.where(stated, p.y_sd, 1.0)) ** 2, 1.0)
+    return weight, sd_ref
+
+
+def _production_report(prods: Sequence[Prepared], axes: Sequence[str], sd_ref: float) -> list[str]:
+    """Per production run: how many measured points it gave (probe points where it is sampled)."""
+    lines = []
+    for p in prods:
+        counts = ", ".join(f"{a} {int(np.isfinite(p.y[i]).sum())}" for i, a in enumerate(axes))
+        if p.sparse:
+            what = "probe columns" if p.y_source == "probes" else "sparse displacement columns"
+            sd = p.y_sd[np.isfinite(p.y) & np.isfinite(p.y_sd)] if p.y_sd is not None else np.zeros(0)
+            weighed = (f", weighted by their stated uncertainty ({float(sd.min()):.3g}-{float(sd.max()):.3g} um; "
+                       f"{sd_ref:.3g} um weighs as one window of sensor data)" if sd.size else
+                       ", no uncertainty stated: each weighs as one window of sensor data")
+            lines.append(f"production run {p.name}: {int(np.isfinite(p.y).any(axis=0).sum())} probe instants from its "
+                         f"{what} ({counts} points){weighed}")
+        else:
+            lines.append(f"production run {p.name}: measured displacement on {counts} windows")
+    return lines
 
 
 def _with_initial_decays(es: ExperimentSet, runs: Sequence[int]) -> ExperimentSet:

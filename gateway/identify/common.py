@@ -43,6 +43,9 @@ class ExperimentSet:
     #: (a daily harmonic, a per-experiment drift) or a term whose time constants are fixed
     extra: np.ndarray | None = None
     extra_names: tuple[str, ...] = ()
+    #: per measured row, its weight in the least squares (A, E, N); None: every row weighs 1. A probe point
+    #: with a stated uncertainty weighs by it (gateway.identify.api); dense sensor rows weigh 1
+    weight: np.ndarray | None = None
 
     @classmethod
     def from_prepared(cls, exps: Sequence[Prepared], *, factors: Sequence[str], axes: Sequence[str]) -> ExperimentSet:
@@ -73,6 +76,13 @@ class ExperimentSet:
 
     def valid(self, axis: int) -> np.ndarray:
         return np.isfinite(self.y[axis])
+
+    def weights(self, axis: int) -> np.ndarray:
+        """The weights of the measured rows of ``axis`` (in :meth:`valid`'s order): ones unless given."""
+        valid = self.valid(axis)
+        if self.weight is None:
+            return np.ones(int(valid.sum()))
+        return np.asarray(self.weight[axis][valid], dtype=float)
 
     @property
     def longest_s(self) -> float:

@@ -131,8 +131,14 @@ class AxisProblem:
         # mean (Frisch-Waugh), so the QR and the Jacobian carry the path columns only
         self._counts = self.valid.sum(axis=1)
         self._starts = np.concatenate([[0], np.cumsum(self._counts)[:-1]])[self._counts > 0]
+        # weighted least squares: every row scaled by the square root of its weight (probe points by their
+        # stated uncertainty, gateway.identify.api); with all weights 1 the arithmetic is the unweighted one
+        w2 = es.weights(axis_index)
+        self.w = np.sqrt(w2)
+        self._w2 = w2[:, None]
+        self._w2_sums = np.add.reduceat(w2, self._starts)[:, None] if self._starts.size else np.zeros((0, 1))
         self._y_means = self._group_means(self.y[:, None])[:, 0]
-        self.y_demeaned = self.y - np.repeat(self._y_means, self._counts[self._counts > 0])
+        self.y_demeaned = self.demean(self.y[:, None])[:, 0]
         self.bounds = Bounds.for_data(es.dt_s, es.longest_s)
         #: per input, where its time constants may go (default: the data's bounds)
         self.input_bounds = [b or self.bounds for b in (input_bounds or [None] * len(es.factors))]
@@ -171,12 +177,15 @@ class AxisProblem:
         return np.column_stack([*cols, self.extra, self.offset_cols])
 
     def _group_means(self, m: np.ndarray) -> np.ndarray:
-        """Per-experiment column means of ``m`` (rows of the experiments that have any)."""
-        return np.add.reduceat(m, self._starts, axis=0) / self._counts[self._counts > 0][:, None]
+        """Per-experiment weighted column means of ``m`` (rows of the experiments that have any)."""
+        return np.add.reduceat(m * self._w2, self._starts, axis=0) / self._w2_sums
 
     def demean(self, m: np.ndarray) -> np.ndarray:
-        """``m`` less each experiment's column means: the residual maker of the offset columns."""
-        return m - np.repeat(self._group_means(m), self._counts[self._counts > 0], axis=0)
+        """``m`` less each experiment's weighted column means, rows scaled by their root weights.
+
+        The residual maker of the (weighted) offset columns: every fitted quantity lives in these rows.
+        """
+        return self.w[:, None] * (m - np.repeat(self._group_means(m), self._counts[self._counts > 0], axis=0))
 
     def solve(self, paths: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(path gains, extra gains, then per-experiment offsets; residual; Q of the demeaned columns).
@@ -351,7 +360,7 @@ class AxisProblem:
             xp = x.copy()
             xp[q] += h
             jac_nl[:, q] = (self.columns(structures, split(xp)) @ lin - out0) / h
-        J = np.column_stack([jac_nl, base])
+        J = np.column_stack([jac_nl, base]) * self.w[:, None]
         s2 = fit.rss / max(self.n - J.shape[1], 1)
         # columns differ by orders of magnitude (rpm-sized responses, unit offsets): scale before inverting
         norm = np.linalg.norm(J, axis=0)
@@ -400,9 +409,9 @@ def bank_start(problem: AxisProblem, active: Sequence[bool], n_modes: int = 12) 
     phi = np.column_stack([*cols, problem.extra, problem.offset_cols])
     scale = np.linalg.norm(phi, axis=0)
     scale[scale == 0] = 1.0
-    A = phi / scale
+    A = phi * problem.w[:, None] / scale
     ridge = 1e-3 * np.trace(A.T @ A) / A.shape[1]
-    coef = np.linalg.solve(A.T @ A + ridge * np.eye(A.shape[1]), A.T @ problem.y) / scale
+    coef = np.linalg.solve(A.T @ A + ridge * np.eye(A.shape[1]), A.T @ (problem.w * problem.y)) / scale
     owner_arr = np.array(owner)
     for j, on in enumerate(active):
         if not on:

@@ -24,6 +24,11 @@ def add_actions(actions: argparse._SubParsersAction) -> None:
                      help="plant variant instead of the scenario's [plant] variant: 0 the nominal machine, N > 0 "
                           "its gains and time constants perturbed by seed N (+-30 %%; cncgw simulate list --variant N "
                           "shows them)")
+    rec.add_argument("--probes-every-h", type=float, default=None, metavar="H",
+                     help="write the recording a gateway without displacement sensors exports from a CNC probing "
+                          "every H hours: no displacement columns, the probes in probe_* columns")
+    rec.add_argument("--probe-sd-um", type=float, default=0.3, metavar="UM",
+                     help="with --probes-every-h: the probes' noise and stated uncertainty (default 0.3 um)")
     rec.add_argument("--no-progress", action="store_true", help="no progress bar")
     rec.set_defaults(func=run_record)
 
@@ -57,9 +62,14 @@ def run_record(args: argparse.Namespace) -> int:
         if args.variant < 0:
             raise SimulationError(f"--variant: expected an integer >= 0 (0: the nominal machine), got {args.variant}")
         scenario = dataclasses.replace(scenario, variant=args.variant)
+    every_h = args.probes_every_h
+    if every_h is not None and not (0 < every_h <= scenario.duration_h and 0 < args.probe_sd_um <= 50):
+        raise SimulationError(f"--probes-every-h {every_h:g} --probe-sd-um {args.probe_sd_um:g}: expected an interval "
+                              f"in (0, {scenario.duration_h:g}] h (the run's length) and an uncertainty in (0, 50] um")
     result = simulate(scenario, progress=not args.no_progress)
     try:
-        rec, truth = write_run(result, args.out)
+        rec, truth = write_run(result, args.out, probe_every_s=None if every_h is None else every_h * 3600.0,
+                               probe_sd_um=args.probe_sd_um)
     except OSError as exc:
         raise SimulationError(f"{args.out}: cannot write the recording: {exc}") from None
     peak = result.peak_um()

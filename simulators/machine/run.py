@@ -131,6 +131,30 @@ class SimulationResult:
                          displacement={a: disp[:, i].copy() for i, a in enumerate(AXES)}, extras=extras,
                          meta=_meta(self.scenario))
 
+    def probe_columns(self, *, every_s: float, sd_um: float = 0.3, seed: int = 0) -> dict[str, np.ndarray]:
+        """The probe cycles of a CNC probing every ``every_s`` from the start, as ``record --export-only`` writes them.
+
+        ``probe_seq``, ``probe_<axis>_um``, ``probe_sd_um`` on the row of the window each was applied
+        after, empty elsewhere. As the simulated CNC's cycles (:class:`simulators.devices.cnc.ProbeCycles`, no
+        compensation in force): the true displacement at the cycle plus normal noise of ``sd_um``, rounded to
+        the probe block's 0.1 um.
+        """
+        if not every_s > 0 or not sd_um > 0:
+            raise ValueError(f"every_s and sd_um must be > 0. Got {every_s!r}, {sd_um!r}")
+        n = len(self.time_s)
+        cycles = np.arange(every_s, float(self.time_s[-1]) + 1e-9, every_s)
+        rows = np.searchsorted(self.time_s, cycles + 1e-9, side="right") - 1  # the last window ended by the cycle
+        rows = np.unique(rows[rows >= 0])
+        rng = np.random.default_rng([seed, 16])
+        cols = {"probe_seq": np.full(n, np.nan)}
+        cols["probe_seq"][rows] = np.arange(1, len(rows) + 1) % 65536
+        for i, a in enumerate(AXES):
+            c = np.full(n, np.nan)
+            c[rows] = np.round((self.true_um[rows, i] + sd_um * rng.standard_normal(len(rows))) * 10.0) / 10.0
+            cols[f"probe_{a}_um"] = c
+        cols["probe_sd_um"] = np.where(np.isfinite(cols["probe_seq"]), sd_um, np.nan)
+        return cols
+
     def truth_columns(self) -> dict[str, np.ndarray]:
         cols = {f"{a}_true_um": self.true_um[:, i] for i, a in enumerate(AXES)}
         cols |= {f"{a}_artefact_um": self.artefact_um[:, i] for i, a in enumerate(AXES)}
@@ -211,15 +235,25 @@ def simulate(scenario: Scenario, *, machine: MachineParams = DEFAULT_MACHINE, pr
         contributions_um=contributions)
 
 
-def write_run(result: SimulationResult, out_dir: str | Path) -> tuple[Path, Path]:
-    """Write ``<run>.csv`` (the recording) and ``<run>.truth.csv`` (ground truth) into ``out_dir``."""
+def write_run(result: SimulationResult, out_dir: str | Path, *, probe_every_s: float | None = None,
+              probe_sd_um: float = 0.3) -> tuple[Path, Path]:
+    """Write ``<run>.csv`` (the recording) and ``<run>.truth.csv`` (ground truth) into ``out_dir``.
+
+    ``probe_every_s``: the recording is what a gateway without displacement sensors exports from a CNC that
+    probes every ``probe_every_s`` (:meth:`SimulationResult.probe_columns`): no displacement columns, the
+    probes in sparse ``probe_*`` columns.
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     sc = result.scenario
     meta = _meta(sc) | {"machine": "sim-vmc", "period_s": f"{result.machine.window_s:g}",
                         "source": "cncgw simulate record"}
-    rec = write_recording(out / f"{sc.name}.csv", time_s=result.stamps_s, columns=result.recording_columns(),
-                          meta=meta)
+    columns = result.recording_columns()
+    if probe_every_s is not None:
+        columns = {k: v for k, v in columns.items() if k not in {f"{a}_um" for a in AXES}}
+        columns |= result.probe_columns(every_s=probe_every_s, sd_um=probe_sd_um, seed=sc.seed)
+        meta["probes"] = f"every {probe_every_s:g} s, sd {probe_sd_um:g} um (no displacement sensors)"
+    rec = write_recording(out / f"{sc.name}.csv", time_s=result.stamps_s, columns=columns, meta=meta)
     truth_meta = meta | {"kind": "ground truth (not a recording: the gateway never reads this)",
                          "effects": ", ".join(sc.effects.enabled) or "none"}
     truth = write_recording(out / f"{sc.name}.truth.csv", time_s=result.stamps_s,
