@@ -403,6 +403,38 @@ def diagnosis_names(out_dir: Path) -> Names:
     return Names(accepted, [], nothing, unfit, "report.md")
 
 
+def _read_table(path: Path) -> tuple[list[str], np.ndarray]:
+    rows = [ln for ln in path.read_text().splitlines() if ln and not ln.startswith("#")]
+    reader = csv.reader(rows)
+    head = next(reader)
+    return head, np.array([[float(c) if c else math.nan for c in r] for r in reader])
+
+
+def _worst_pct_vs_truth(profile: Path, model: Path, day: Path, work: Path, worst: dict[str, float]
+                        ) -> dict[str, float]:
+    """Per axis, the larger of ``worst`` and the model's max error on ``day`` as % of the true peak (>= 2 um).
+
+    The model's estimate (``cncgw estimate -o``) against the simulator's thermal displacement (the truth
+    file; each day starts at rest, where both are 0), not against the measurement.
+    """
+    out = dict(worst)
+    pred = work / f"{day.stem}.estimate.csv"
+    run_cli(["estimate", "--profile", profile, "--model", model, day, "-o", pred])
+    head, est = _read_table(pred)
+    thead, truth = _read_table(day.with_suffix(".truth.csv"))
+    for a in AXES:
+        if f"{a}_est_um" not in head or f"{a}_true_um" not in thead:
+            continue
+        t = truth[:, thead.index(f"{a}_true_um")]
+        e = est[:, head.index(f"{a}_est_um")]
+        n = min(len(t), len(e))
+        t, e = t[:n] - t[0], e[:n]
+        peak = float(np.max(np.abs(t)))
+        if peak >= 2.0:
+            out[a] = max(out.get(a, 0.0), 100.0 * float(np.max(np.abs(e - t))) / peak)
+    return out
+
+
 def _truth_rms(csv_path: Path, effect: str) -> dict[str, float]:
     """RMS (about its mean) of an effect's true contribution per axis, from the truth file beside a recording."""
     truth = csv_path.with_suffix(".truth.csv")
@@ -487,10 +519,10 @@ def run_bench_case(protocol: str, effect_name: str, variant: int, cache: Path, r
             row.after = {k: v["rms_um"] for k, v in a.items()}
             row.before_pct = {k: v["max_error_pct_of_peak"] for k, v in b.items()}
             row.peak = {k: v["peak_um"] for k, v in b.items()}
-            for e in estimate_json(PROFILE, model, days):
-                for k, v in e["axes"].items():
-                    if v["max_error_pct_of_peak"] is not None and v["peak_um"] >= 2.0:
-                        row.days_pct[k] = max(row.days_pct.get(k, 0.0), v["max_error_pct_of_peak"])
+            # unfit is the model's error against the thermal truth: a sensor knock in the measurement is not
+            # the model's (diagnosis removes it as an artefact)
+            for day in days:
+                row.days_pct = _worst_pct_vs_truth(PROFILE, model, day, work, row.days_pct)
             row.effect_um = _truth_rms(fresh[0], effect.truth)
         except CommandFailed as exc:
             row.error = str(exc)
@@ -611,8 +643,8 @@ def summary(verdicts: list[Verdict], *, protocol: str) -> list[str]:
                       + " um (a gain says the baseline itself lacked it)" if hit else ""))
     unfit = [v for v in rows if v.unfit]
     bad = [v.row.label for v in unfit if v.row.nothing_missing]
-    out.append(f"baseline unfit on the days diagnosed (max error > {UNFIT_PCT:.0f} % of a peak >= 2 um): "
-               f"{len(unfit)} cases; report says 'nothing significant is missing' over it: {len(bad)}"
+    out.append(f"baseline unfit on the days diagnosed (max error against the truth > {UNFIT_PCT:.0f} % of a true "
+               f"peak >= 2 um): {len(unfit)} cases; report says 'nothing significant is missing' over it: {len(bad)}"
                + (f" ({', '.join(bad)})" if bad else "") + "  (aim: 0)")
     walls = [v.row.diagnose_s for v in rows if math.isfinite(v.row.diagnose_s)]
     cpus = [v.row.diagnose_cpu_s for v in rows if math.isfinite(v.row.diagnose_cpu_s)]

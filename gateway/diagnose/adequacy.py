@@ -18,6 +18,7 @@ significant is missing" must never be printed over it. Two checks:
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
@@ -115,8 +116,18 @@ class Adequacy:
         return out
 
 
-def assess(stack: Stack, model: ThermalModel, sigma_um: dict[str, float]) -> Adequacy:
-    """Judge ``model`` (its prediction is ``stack.base``) before any hypothesis; ``sigma_um``: noise per axis."""
+def assess(stack: Stack, model: ThermalModel, sigma_um: dict[str, float],
+           artefacts_um: Mapping[str, np.ndarray] | None = None) -> Adequacy:
+    """Judge ``model`` (its prediction is ``stack.base``) before any hypothesis; ``sigma_um``: noise per axis.
+
+    ``artefacts_um``: per axis, the measurement artefacts found (steps within one window: a sensor knocked or
+    re-zeroed), every window of the stack; they are the sensor's, not the model's, and are taken out of the
+    measurement before it is judged (the report lists them).
+    """
+    y_all = stack.y.copy()
+    for i, a in enumerate(stack.axes):
+        if artefacts_um and a in artefacts_um:
+            y_all[i] = y_all[i] - artefacts_um[a]
     unseen = [r for r, seen in enumerate(stack.identified(model)) if not seen]
     training = not unseen  # nothing else given: judged on its own experiments (if even they fail, it is unfit)
     if training:
@@ -126,7 +137,7 @@ def assess(stack: Stack, model: ThermalModel, sigma_um: dict[str, float]) -> Ade
         parts = []  # (recording, error, measured, predicted) per unseen recording, aligned as estimate aligns
         for r in unseen:
             lo, hi = stack.bounds[r]
-            y, p = stack.y[i, lo:hi], stack.base[i, lo:hi]
+            y, p = y_all[i, lo:hi], stack.base[i, lo:hi]
             ok = np.isfinite(y)
             if not ok.any():
                 continue
@@ -169,14 +180,17 @@ def assess(stack: Stack, model: ThermalModel, sigma_um: dict[str, float]) -> Ade
                           max_error_pct_of_peak=w.max_error_pct_of_peak)
         axes[a] = AxisAdequacy(**asdict(fig), predicted_peak_um=predicted, displacement_rms_um=disp_rms,
                                worst=worst[0] if worst else "", reasons=tuple(reasons))
-    drift = {a: resting_drift(stack, i, sigma_um.get(a, 0.0)) for i, a in enumerate(stack.axes)
+    drift = {a: resting_drift(stack, i, sigma_um.get(a, 0.0), y=y_all[i]) for i, a in enumerate(stack.axes)
              if np.isfinite(stack.y[i]).any()}
     return Adequacy(unseen=tuple(recording_label(stack.sources[r]) for r in unseen), axes=axes, drift=drift,
                     training=training)
 
 
-def resting_drift(stack: Stack, axis: int, sigma_um: float) -> RestingDrift:
-    """Drift of the displacement over stretches where no factor moves and the model predicts no change."""
+def resting_drift(stack: Stack, axis: int, sigma_um: float, *, y: np.ndarray | None = None) -> RestingDrift:
+    """Drift of the displacement over stretches where no factor moves and the model predicts no change.
+
+    ``y``: the axis's measurement with its artefacts taken out (default: as recorded).
+    """
     at_rest = np.ones(stack.n, dtype=bool)
     for f in stack.factors:
         u = stack.du[f]
@@ -185,7 +199,7 @@ def resting_drift(stack: Stack, axis: int, sigma_um: float) -> RestingDrift:
             # resting: at the level the recording started from (the model's rest), within a share of the range
             at_rest &= np.abs(u) <= REST_SHARE * span
     min_len = max(3, math.ceil(REST_MIN_S / stack.dt_s))
-    y, base = stack.y[axis], stack.base[axis]
+    y, base = (stack.y[axis] if y is None else y), stack.base[axis]
     band = max(4.0 * sigma_um, 1e-9)
     judged = drifting = 0
     largest = rate = 0.0

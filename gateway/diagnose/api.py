@@ -149,7 +149,9 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
                 axis=a, residual=r, noise=noise, windows=located_windows(stack, r_clean, noise), steps=steps,
                 change_points=change_points(stack, r_clean), states=operating_states(stack, r_clean),
                 lines=spectral_lines(stack, r_clean), correlations=correlations(stack, r_clean, signals))
-        adequacy = assess(stack, model, {a: f.noise.sigma_um for a, f in findings.items()})
+        adequacy = assess(stack, model, {a: f.noise.sigma_um for a, f in findings.items()},
+                          {a: sum((s.size_um * s.column(stack) for s in f.steps), np.zeros(stack.n))
+                           for a, f in findings.items() if f.steps})
         measured = np.isfinite(stack.y).any(axis=0)
         block = make_blocks(stack.bounds, measured, options.blocks)
         hyps = catalogue(stack, model, infos, families=families)
