@@ -220,6 +220,7 @@ class CaseResult:
     interval_h: float
     scores: dict[str, Scores]
     coverage: np.ndarray  # per axis: share of windows whose true displacement lies in the 95 % band
+    calibration: dict[str, np.ndarray]  # per axis, see calibration()
     applied: int
     refused: list[str]
     reanchored: int
@@ -241,11 +242,35 @@ def run_case(model: ThermalModel, run: dict[str, np.ndarray], *, effect: str, va
           "zero at probe": scores(truth, zap), "updated": scores(truth, rp.estimate_um)}
     lo, hi = rp.band_um()
     coverage = ((truth >= lo) & (truth <= hi)).mean(axis=1)
+    calib = calibration(rp, truth, int(idx[0]) if idx.size else 0, probe_sd_um)
     refused = [d.describe() for d in rp.decisions if not d.accepted]
     applied = sum(1 for d in rp.decisions if d.accepted)
     reanchored = sum(1 for d in rp.decisions if d.accepted and d.reason.startswith("re-anchored"))
     return CaseResult(effect=effect, variant=variant, seed=seed, interval_h=interval_h, scores=sc, coverage=coverage,
+                      calibration=calib,
                       applied=applied, refused=refused, reanchored=reanchored, rp=rp, zap=zap, truth=truth)
+
+
+def calibration(rp: Replay, truth: np.ndarray, first: int, probe_sd_um: float) -> dict[str, np.ndarray]:
+    """Per axis, from the first probe on: how the band compares with the error it should cover.
+
+    ``half_band_um``: the band's median half-width; ``error_q95_um``: the 95th percentile of |error|;
+    ``sd_ratio``: RMS of error / sd (1 when the band's variance is right; < 1 too wide); ``k95``: the factor
+    the band would need for 95 % coverage (the 95th percentile of |error| / half-band); ``innovation_ratio``:
+    the mean of (reading - prediction)^2 / predicted variance (the probe's own noise included) at the probes,
+    what the bank calibrates itself on; ``band_sd_over_probe_sd``: the band's median sd / the probe's sd
+    (below 1 the probes cannot resolve how wide the band should be).
+    """
+    err = (truth - rp.estimate_um)[:, first:]
+    sd = rp.sd_um[:, first:]
+    half = 1.959963984540054 * sd
+    dec = [d for d in rp.decisions if d.accepted and d.predicted_sd_um]
+    innov = np.array([np.mean([(d.value_um - d.predicted_um) ** 2 / d.predicted_sd_um ** 2
+                               for d in dec if d.axis == a] or [np.nan]) for a in AXES])
+    return {"half_band_um": np.median(half, axis=1), "error_q95_um": np.quantile(np.abs(err), 0.95, axis=1),
+            "sd_ratio": np.sqrt(np.mean((err / sd) ** 2, axis=1)),
+            "k95": np.quantile(np.abs(err) / half, 0.95, axis=1), "innovation_ratio": innov,
+            "band_sd_over_probe_sd": np.median(sd, axis=1) / probe_sd_um}
 
 
 @dataclass(frozen=True)
@@ -425,7 +450,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         args.json.write_text(json.dumps([{
             "effect": r.effect, "variant": r.variant, "seed": r.seed, "interval_h": r.interval_h,
-            "coverage": r.coverage.tolist(), "applied": r.applied, "refused": r.refused,
+            "coverage": r.coverage.tolist(), "calibration": {k: v.tolist() for k, v in r.calibration.items()},
+            "applied": r.applied, "refused": r.refused,
             **{m: {"max_um": s.max_um.tolist(), "rms_um": s.rms_um.tolist()} for m, s in r.scores.items()}}
             for r in results], indent=1))
     return 0
@@ -474,11 +500,32 @@ def report(results: list[CaseResult], intervals: list[float], args: argparse.Nam
         print(f"  every {ih:g} h: 95 % band covers the truth {COVER_LO:.0%}-{COVER_HI:.0%} of the time in "
               f"{_counts(inside, n)} (coverage min {', '.join(f'{v:.1%}' for v in cov.min(axis=0))}; "
               f"max {', '.join(f'{v:.1%}' for v in cov.max(axis=0))})")
+    calibration_report(by, cases, intervals)
     refused = sum(len(by[(*c, ih)].refused) for c in cases for ih in intervals)
     applied = sum(by[(*c, ih)].applied for c in cases for ih in intervals)
     reanchored = sum(by[(*c, ih)].reanchored for c in cases for ih in intervals)
     print(f"  good probes refused by the gate: {refused} of {refused + applied} probe-axes "
           f"(each a false alarm: no bad probe was in these runs); re-anchored (conditions changed): {reanchored}")
+
+
+def calibration_report(by: dict, cases: list, intervals: list[float]) -> None:
+    """Why a band misses 90-98 %: its variance against the error's, and against what the probes resolve."""
+    print("  band calibration per case-axis (from the first probe on): sd ratio = RMS(error / sd), 1 when the "
+          "band's variance is right; k95 = the factor the band needs for 95 %; innov = mean (reading - prediction)^2"
+          " / its predicted variance at the probes (what the bank weighs itself on); band sd / probe sd")
+    for ih in intervals:
+        for i, a in enumerate(AXES):
+            cal = [by[(*c, ih)].calibration for c in cases]
+            cov = np.array([by[(*c, ih)].coverage[i] for c in cases])
+            ratio = np.array([k["sd_ratio"][i] for k in cal])
+            k95 = np.array([k["k95"][i] for k in cal])
+            inn = np.array([k["innovation_ratio"][i] for k in cal])
+            res = np.array([k["band_sd_over_probe_sd"][i] for k in cal])
+            wide, narrow = cov > COVER_HI, cov < COVER_LO
+            print(f"    every {ih:g} h, {a}: coverage {100 * cov.min():.1f}-{100 * cov.max():.1f} %, {wide.sum()} too "
+                  f"wide, {narrow.sum()} too narrow; sd ratio median {np.median(ratio):.2f} ({ratio.min():.2f}-"
+                  f"{ratio.max():.2f}), k95 {np.median(k95):.2f} ({k95.min():.2f}-{k95.max():.2f}), innov "
+                  f"{np.nanmedian(inn):.2f}, band sd / probe sd {np.median(res):.2f} ({res.min():.2f}-{res.max():.2f})")
 
 
 def _counts(mask: np.ndarray, n: int) -> str:
