@@ -12,6 +12,7 @@ import pytest
 from tests_paths import PROFILES, ROOT
 
 from gateway.adaptive import AdaptiveEstimator, DriftSettings, Probe, replay
+from gateway.adaptive.filter import Z95
 from gateway.adaptive.probes import SEQ_MODULUS
 from gateway.model import FirstOrder, PathTF, ThermalModel, load_model
 
@@ -194,6 +195,20 @@ def test_without_probes_the_band_is_the_identification_gain_uncertainty_and_the_
     # the band starts at the gain's share (5 % of the model's output over the bank's gain scales) and grows
     assert alone.sd_um[0, 0] < 0.05
     assert alone.sd_um[0, -1] > alone.sd_um[0, 3 * H]
+
+
+@pytest.mark.parametrize("sd_um", [0.3, 1.0])
+def test_the_band_is_about_the_truth_not_the_probe_noise(sd_um):
+    # a model that is right, probed every hour for two days: after a day the band is narrower than a single
+    # probe's own 95 % interval (the probes' noise is averaged out; it belongs in the innovation, not the band),
+    # and it still covers the truth
+    rp, truth, _, _ = run(lambda t_h: 0.0 * t_h, hours=48, sd_um=sd_um)
+    half = Z95 * rp.sd_um[0]
+    err = np.abs(truth - rp.estimate_um[0])
+    day = 24 * H
+    assert half[day:].max() < Z95 * sd_um
+    assert np.sqrt(np.mean(err[day:] ** 2)) < sd_um / 2
+    assert np.mean(err[H:] <= half[H:]) >= 0.95
 
 
 def test_settings_are_checked():
