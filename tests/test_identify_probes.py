@@ -28,16 +28,15 @@ PROFILE = PROFILES / "sim-vmc.toml"
 
 
 @pytest.fixture(scope="module")
-def files(tmp_path_factory):
-    """The nine experiments (displacement sensors) and the production day probed every 2 h (no sensors)."""
+def files(tmp_path_factory, sim_identified):
+    """The nine experiments (displacement sensors) and the production day probed every 2 h (no sensors); the
+    experiments alone identified (conftest: once a session, the same runs in memory)."""
     d = tmp_path_factory.mktemp("probes")
     for n in EXPERIMENTS:
         assert main(["simulate", "record", n, "-o", str(d), "--no-progress"]) == 0
     assert main(["simulate", "record", "production-day", "-o", str(d / "probed"), "--probes-every-h", "2",
                  "--no-progress"]) == 0
-    profile = load_profile(PROFILE)
-    alone = identify([read_for_profile(d / f"{n}.csv", profile) for n in EXPERIMENTS], factors=profile.factor_names,
-                     axes=profile.axes).model
+    alone = sim_identified[2].model
     held = simulate(parse_scenario_text(HELD_OUT)).recording("true")
     return d, [str(d / f"{n}.csv") for n in EXPERIMENTS], d / "probed" / "production-day.csv", alone, held
 
