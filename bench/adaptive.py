@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/adaptive.py [--quick] [--days 4] [--seeds 1,2] [--variants 0,1,2]
                                        [--effects room,slow,coolant] [--intervals 1,2,4] [--plot DIR]
-                                       [--cache DIR]
+                                       [--cache DIR] [--json FILE] [--extrapolation-gain-sd K]
 
 Per plant variant (``[plant] variant = N``, simulators/machine/variants.py) the model is identified from the
 nine bundled identification scenarios on that plant (``gateway.identify.identify``, the joint method, as
@@ -25,7 +25,10 @@ each estimate causal (a window's estimate uses only probes taken up to its end):
 
 Printed: max and RMS error per method and axis, ratios of the updated model to the model alone and to
 zero-at-probe at the same interval and to zero-at-probe every hour, the band's coverage of the true
-displacement per axis, and each aim of issue 16 met or missed. Then bad probes: into the 2 h schedule of
+displacement per axis, and each aim of issue 16 met or missed; why a band misses (per interval and axis: the
+RMS of error / sd, the factor the band would need for 95 %, the bank's own innovation ratio at the probes, the
+band's sd against the probe's); and the band's coverage over the windows beyond the model's coverage (it
+widens there by ``--extrapolation-gain-sd``, 0 by default). Then bad probes: into the 2 h schedule of
 every case go a gross outlier (the estimate + 8 sd of its prediction and at least 20 um: a chip on the
 reference), a probe whose sign is reversed (where |estimate| is largest against its band) and a repeated
 sequence number with other values; each must be refused with its reason and the estimates must be
@@ -59,7 +62,9 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from gateway.adaptive import DriftSettings, Probe, Replay, replay  # noqa: E402
+from gateway.adaptive.offline import model_beyond  # noqa: E402
 from gateway.model import ThermalModel, load_model, model_to_toml  # noqa: E402
+from gateway.model.coverage import check_coverage  # noqa: E402
 
 SCENARIOS = ROOT / "simulators" / "scenarios"
 AXES = ("x", "y", "z")
@@ -220,6 +225,8 @@ class CaseResult:
     interval_h: float
     scores: dict[str, Scores]
     coverage: np.ndarray  # per axis: share of windows whose true displacement lies in the 95 % band
+    coverage_outside: np.ndarray  # the same over the windows beyond the model's coverage (NaN: none)
+    outside_share: float  # share of windows beyond the model's coverage
     calibration: dict[str, np.ndarray]  # per axis, see calibration()
     applied: int
     refused: list[str]
@@ -233,21 +240,29 @@ def run_case(model: ThermalModel, run: dict[str, np.ndarray], *, effect: str, va
              interval_h: float, probe_sd_um: float, settings: DriftSettings | None = None) -> CaseResult:
     t, truth = run["time_s"], run["true_um"]
     u = np.array([run[f"factor_{f}"] for f in model.factors])
-    contributions = model.discretize(WINDOW_S).contributions(u - model.reference_vector()[:, None])
+    du = u - model.reference_vector()[:, None]
+    contributions = model.discretize(WINDOW_S).contributions(du)
     idx = probe_schedule(t, interval_h)
     probes = probes_for(truth, t, idx, probe_sd_um, 1000 * seed + variant)
-    rp = replay(model, contributions, t, probes, window_s=WINDOW_S, settings=settings)
+    rp = replay(model, contributions, t, probes, window_s=WINDOW_S, settings=settings,
+                beyond=model_beyond(model, du))
+    outside = check_coverage(model.coverage, du, model.factors).outside if model.coverage is not None else None
     zap = zero_at_probe(len(t), idx, probes)
     sc = {"none": scores(truth, np.zeros_like(truth)), "model": scores(truth, rp.model_um),
           "zero at probe": scores(truth, zap), "updated": scores(truth, rp.estimate_um)}
     lo, hi = rp.band_um()
-    coverage = ((truth >= lo) & (truth <= hi)).mean(axis=1)
+    covered = (truth >= lo) & (truth <= hi)
+    coverage = covered.mean(axis=1)
+    # the band where the model extrapolates (beyond its identification's coverage), from the first probe on
+    out_k = np.zeros(len(t), bool) if outside is None else outside.copy()
+    out_k[: int(idx[0]) if idx.size else 0] = False
+    coverage_outside = covered[:, out_k].mean(axis=1) if out_k.any() else np.full(len(AXES), np.nan)
     calib = calibration(rp, truth, int(idx[0]) if idx.size else 0, probe_sd_um)
     refused = [d.describe() for d in rp.decisions if not d.accepted]
     applied = sum(1 for d in rp.decisions if d.accepted)
     reanchored = sum(1 for d in rp.decisions if d.accepted and d.reason.startswith("re-anchored"))
     return CaseResult(effect=effect, variant=variant, seed=seed, interval_h=interval_h, scores=sc, coverage=coverage,
-                      calibration=calib,
+                      calibration=calib, coverage_outside=coverage_outside, outside_share=float(out_k.mean()),
                       applied=applied, refused=refused, reanchored=reanchored, rp=rp, zap=zap, truth=truth)
 
 
@@ -290,12 +305,14 @@ def bad_probe_check(model: ThermalModel, run: dict[str, np.ndarray], *, seed: in
     """
     t, truth = run["time_s"], run["true_um"]
     u = np.array([run[f"factor_{f}"] for f in model.factors])
-    contributions = model.discretize(WINDOW_S).contributions(u - model.reference_vector()[:, None])
+    du = u - model.reference_vector()[:, None]
+    contributions = model.discretize(WINDOW_S).contributions(du)
+    beyond = model_beyond(model, du)
     idx = probe_schedule(t, 2.0)
     good = probes_for(truth, t, idx, probe_sd_um, 1000 * seed + variant)
     # numbers with room for the bad ones between them, as a CNC numbers every cycle it runs
     good = [Probe(seq=10 * p.seq, time_s=p.time_s, values_um=p.values_um, sd_um=p.sd_um) for p in good]
-    clean = replay(model, contributions, t, good, window_s=WINDOW_S, settings=settings)
+    clean = replay(model, contributions, t, good, window_s=WINDOW_S, settings=settings, beyond=beyond)
     # where to put them: a window between two probes where the estimate is large against its band
     mid = idx[:-1] + (idx[1:] - idx[:-1]) // 2
     z = AXES.index("z")
@@ -324,7 +341,7 @@ def bad_probe_check(model: ThermalModel, run: dict[str, np.ndarray], *, seed: in
               values_um={a: v + 5.0 for a, v in good[i_seq].values_um.items()}, sd_um=probe_sd_um),
     ]
     dirty = replay(model, contributions, t, sorted([*good, *bad], key=lambda p: (p.time_s, p is bad[2])),
-                   window_s=WINDOW_S, settings=settings)
+                   window_s=WINDOW_S, settings=settings, beyond=beyond)
     same = np.array_equal(clean.estimate_um, dirty.estimate_um) and np.array_equal(clean.sd_um, dirty.sd_um)
     refused = {(d.seq, d.time_s): d for d in dirty.decisions if not d.accepted}
     ok = same
@@ -341,7 +358,7 @@ def bad_probe_check(model: ThermalModel, run: dict[str, np.ndarray], *, seed: in
     border = Probe(seq=between(k_out), time_s=float(t[k_out]),
                    values_um={"z": float(clean.estimate_um[z, k_out] + 5.0)}, sd_um=probe_sd_um)
     bl = replay(model, contributions, t, sorted([*good, border], key=lambda p: p.time_s), window_s=WINDOW_S,
-                settings=settings)
+                settings=settings, beyond=beyond)
     d = next((d for d in bl.decisions if d.seq == border.seq), None)
     changed = float(np.abs(clean.estimate_um - bl.estimate_um).max())
     borderline = (f"{'refused' if d is not None and not d.accepted else 'applied'} "
@@ -398,6 +415,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--effects", default=",".join(EFFECTS))
     ap.add_argument("--intervals", default="1,2,4")
     ap.add_argument("--probe-sd-um", type=float, default=0.3)
+    ap.add_argument("--extrapolation-gain-sd", type=float, default=DriftSettings().extrapolation_gain_sd,
+                    help="relative gain sd per unit of log distance beyond the model's coverage (0: the band "
+                         "does not widen there)")
     ap.add_argument("--plot", type=Path, default=None, help="write a figure per case and interval here")
     ap.add_argument("--json", type=Path, default=None, help="write every figure as JSON here")
     ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "cncgw-bench" / "adaptive")
@@ -412,6 +432,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.plot:
         args.plot.mkdir(parents=True, exist_ok=True)
 
+    settings = DriftSettings(extrapolation_gain_sd=args.extrapolation_gain_sd)
     t0 = time.perf_counter()
     models = {v: identified_model(v, args.cache) for v in args.variants}
     print(f"models of plant variants {args.variants} identified from the nine scenarios "
@@ -426,15 +447,16 @@ def main(argv: list[str] | None = None) -> int:
                 for ih in sorted(set(intervals) | {1.0}):
                     t1 = time.perf_counter()
                     res = run_case(models[v], run, effect=effect, variant=v, seed=seed, interval_h=ih,
-                                   probe_sd_um=args.probe_sd_um)
+                                   probe_sd_um=args.probe_sd_um, settings=settings)
                     wall += time.perf_counter() - t1
                     results.append(res)
                     if args.plot and ih in intervals:
                         plot_case(res, args.plot / f"{effect}-v{v}-s{seed}-{ih:g}h.png")
                 bad_ok.append((f"{effect} v{v} s{seed}",
-                               bad_probe_check(models[v], run, seed=seed, variant=v, probe_sd_um=args.probe_sd_um)))
+                               bad_probe_check(models[v], run, seed=seed, variant=v, probe_sd_um=args.probe_sd_um,
+                                               settings=settings)))
     n_windows = sum(r.truth.shape[1] for r in results)
-    bank = len(DriftSettings().scales) * len(DriftSettings().gain_scales)
+    bank = len(settings.scales) * len(settings.gain_scales)
     print(f"{len(results)} runs of {args.days} days, {n_windows} windows filtered in {wall:.1f} s "
           f"({1e3 * wall / n_windows:.2f} ms a window, a bank of {bank} filters per axis)\n")
     report(results, intervals, args)
@@ -450,7 +472,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         args.json.write_text(json.dumps([{
             "effect": r.effect, "variant": r.variant, "seed": r.seed, "interval_h": r.interval_h,
-            "coverage": r.coverage.tolist(), "calibration": {k: v.tolist() for k, v in r.calibration.items()},
+            "coverage": r.coverage.tolist(), "coverage_outside": r.coverage_outside.tolist(),
+            "outside_share": r.outside_share, "calibration": {k: v.tolist() for k, v in r.calibration.items()},
             "applied": r.applied, "refused": r.refused,
             **{m: {"max_um": s.max_um.tolist(), "rms_um": s.rms_um.tolist()} for m, s in r.scores.items()}}
             for r in results], indent=1))
@@ -501,6 +524,17 @@ def report(results: list[CaseResult], intervals: list[float], args: argparse.Nam
               f"{_counts(inside, n)} (coverage min {', '.join(f'{v:.1%}' for v in cov.min(axis=0))}; "
               f"max {', '.join(f'{v:.1%}' for v in cov.max(axis=0))})")
     calibration_report(by, cases, intervals)
+    share = [by[(*c, intervals[0])].outside_share for c in cases]
+    print(f"  beyond the model's coverage ({100 * min(share):.0f}-{100 * max(share):.0f} % of the windows; "
+          f"extrapolation_gain_sd {args.extrapolation_gain_sd:g}):")
+    for ih in intervals:
+        cov = np.array([by[(*c, ih)].coverage_outside for c in cases])
+        ok = np.isfinite(cov).all(axis=1)
+        cov = cov[ok]
+        inside = (cov >= COVER_LO) & (cov <= COVER_HI)
+        print(f"    every {ih:g} h: the band covers the truth {COVER_LO:.0%}-{COVER_HI:.0%} of those windows in "
+              f"{_counts(inside, len(cov))} (min {', '.join(f'{v:.1%}' for v in cov.min(axis=0))}; median "
+              f"{', '.join(f'{v:.1%}' for v in np.median(cov, axis=0))})")
     refused = sum(len(by[(*c, ih)].refused) for c in cases for ih in intervals)
     applied = sum(by[(*c, ih)].applied for c in cases for ih in intervals)
     reanchored = sum(by[(*c, ih)].reanchored for c in cases for ih in intervals)

@@ -111,6 +111,8 @@ class Estimate:
             cols[f"{a}_resid_um"] = self.residual[i]
         if self.coverage is not None:
             cols["outside_coverage"] = self.coverage.outside.astype(float)
+            if self.coverage.beyond is not None:  # how far, in covered spans: the band widens with it
+                cols["beyond_coverage"] = self.coverage.beyond
         return format_recording(time_s=self.time_s, columns=cols, meta={**self.settings, **(meta or {})})
 
 

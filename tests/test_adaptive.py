@@ -211,6 +211,42 @@ def test_the_band_is_about_the_truth_not_the_probe_noise(sd_um):
     assert np.mean(err[H:] <= half[H:]) >= 0.95
 
 
+def test_the_band_widens_beyond_the_models_coverage():
+    # identified up to 1000 W; after a day inside, learned from probes every 4 h, a 4 h excursion at 3000 W
+    # where the heat acts 8 % more than the model extrapolates (2.1 um at most on a 33 um peak)
+    from dataclasses import replace
+
+    from gateway.adaptive.offline import model_beyond
+    from gateway.model.coverage import Coverage
+
+    model = replace(small_model(), coverage=Coverage(ranges={"q": (0.0, 1000.0)}))
+    k = np.arange(36 * H)
+    q = np.where((k // H) % 4 < 2, 0.0, 1000.0)
+    q[(k >= 25 * H) & (k < 29 * H)] = 3000.0
+    q = q[None, :]
+    C = model.discretize(DT).contributions(q)
+    truth = model.discretize(DT).contributions(q * np.where(q > 1000.0, 1.08, 1.0)).sum(axis=1)[0]
+    t = DT * (k + 1.0)
+    rng = np.random.default_rng(1)
+    probes = [Probe(seq=n + 1, time_s=float(t[j]), values_um={"z": float(truth[j] + 0.3 * rng.standard_normal())},
+                    sd_um=0.3) for n, j in enumerate(range(4 * H - 1, len(t), 4 * H))]
+    beyond = model_beyond(model, q)
+    out = beyond[0] > 0
+    assert out.sum() == 4 * H
+    on = 0.05  # a 5 % relative gain sd per log(1 + covered spans) beyond (off by default: not calibrated)
+    runs = {g: replay(model, C, t, probes, window_s=DT, beyond=beyond,
+                      settings=DriftSettings(extrapolation_gain_sd=g))
+            for g in (0.0, on)}
+    covered = {g: np.abs(truth - rp.estimate_um[0]) <= Z95 * rp.sd_um[0] for g, rp in runs.items()}
+    assert covered[0.0][out].mean() < 0.5  # the band learned inside is too narrow out there
+    assert DriftSettings().extrapolation_gain_sd == 0.0  # and stays so by default
+    wide = runs[on]
+    assert covered[on][out].mean() >= 0.9
+    # inside, before the excursion, nothing changed; out there the band is a fraction of the output, not a multiple
+    np.testing.assert_array_equal(wide.sd_um[0, : 25 * H], runs[0.0].sd_um[0, : 25 * H])
+    assert (Z95 * wide.sd_um[0, out]).max() < 0.25 * np.abs(wide.model_um[0, out]).max()
+
+
 def test_settings_are_checked():
     with pytest.raises(ValueError, match="rate_tau_h must be finite and > 0"):
         DriftSettings(rate_tau_h=0.0)

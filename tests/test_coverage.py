@@ -12,7 +12,7 @@ import pytest
 from gateway.errors import ModelError
 from gateway.live.tracking import DisplacementTracker
 from gateway.model import PathTF, ThermalModel, load_model, model_to_toml
-from gateway.model.coverage import Coverage, Ratio, check_coverage, co_varying_pairs, coverage_of
+from gateway.model.coverage import Coverage, Ratio, beyond_coverage, check_coverage, co_varying_pairs, coverage_of
 from gateway.model.terms import FirstOrder
 from gateway.profile.live import Live
 from gateway.recording import Recording
@@ -83,6 +83,27 @@ def small_model(coverage: Coverage | None) -> ThermalModel:
     return ThermalModel(axes=("z",), factors=FACTORS, units={"speed": "rpm", "i1_sq": "A^2", "feed": "mm/min"},
                         reference={"speed": 0.0, "i1_sq": 4.0, "feed": 0.0},
                         paths={(p.axis, p.factor): p for p in paths}, coverage=coverage)
+
+
+def test_how_far_beyond_is_zero_inside_and_grows_in_proportion_outside():
+    # covered to 1000 rpm with 0.01 A^2 per rpm; production at 3000 rpm with the current following the speed
+    # (i1_sq grows as speed^2 there: 9x its covered highest); the flag is 20 % past the covered span
+    cov = coverage_of([spindle_run(1000.0, 1e-2)], FACTORS)
+    du = np.zeros((3, 4))
+    du[0] = [500.0, 1200.0, 3000.0, 3000.0]
+    du[1] = [5.0, 12.0, 30.0, 90.0]
+    far = beyond_coverage(cov, du, FACTORS)
+    assert far.shape == (3, 4)
+    np.testing.assert_array_equal(far[:, :2], 0.0)  # inside, and at the flag itself
+    assert far[0, 2] == pytest.approx(math.log(1.0 + 2.0 - 0.2))  # 3x the covered speed: 1.8 spans past the flag
+    # 9x the covered current^2 lies 7.8 spans past the flag, 4.3x as far as the speed; in log 2.1x (an
+    # extrapolating gain error grows in proportion, not with the span)
+    assert far[1, 3] == pytest.approx(math.log(1.0 + 9.0 - 1.0 - 0.2))
+    assert far[1, 3] / far[0, 2] < 2.2
+    # the ratio current^2 / speed at 3x its covered value (2.5x the flag) reaches the speed too: log 2.5
+    du2 = np.array([[1000.0], [30.0], [0.0]])
+    assert beyond_coverage(cov, du2, FACTORS)[0, 0] == pytest.approx(math.log(2.5))
+    np.testing.assert_array_equal(far[2], 0.0)  # the feed stayed where it was
 
 
 def test_model_file_round_trip_and_bad_values_named_by_line_and_key(tmp_path):

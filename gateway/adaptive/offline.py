@@ -10,6 +10,7 @@ import numpy as np
 
 from gateway.adaptive.filter import DriftSettings, Replay, replay
 from gateway.adaptive.probes import Probe
+from gateway.model.coverage import beyond_coverage
 from gateway.model.model import ThermalModel
 from gateway.prepare import prepare
 from gateway.recording import Recording, continued, format_recording
@@ -68,9 +69,23 @@ def estimate_with_probes(model: ThermalModel, rec: Recording, probes: Sequence[P
     contributions = model.discretize(rec.period_s).contributions(prep.du)
     t = np.asarray(prep.time_s, dtype=float)
     inside = [p for p in probes if t[0] - rec.period_s < p.time_s <= t[-1] + 1e-9]
-    rp = replay(model, contributions, t, inside, window_s=rec.period_s, settings=settings)
+    rp = replay(model, contributions, t, inside, window_s=rec.period_s, settings=settings,
+                beyond=model_beyond(model, prep.du))
     cut = Replay(axes=rp.axes, time_s=rp.time_s[skip:], estimate_um=rp.estimate_um[:, skip:],
                  sd_um=rp.sd_um[:, skip:], model_um=rp.model_um[:, skip:], decisions=rp.decisions)
     t_rec = float(t[skip]) if skip < len(t) else math.inf
     outside = sum(1 for p in probes if not (t_rec - rec.period_s < p.time_s <= t[-1] + 1e-9))
     return ProbedRun(recording=rec.source, replay=cut, outside=outside)
+
+
+def model_beyond(model: ThermalModel, du: np.ndarray) -> np.ndarray | None:
+    """How far each of the model's inputs lies beyond its coverage per window (inputs, N); None without one.
+
+    Derived inputs (after the factors) have no coverage of their own: 0.
+    """
+    if model.coverage is None:
+        return None
+    du = np.asarray(du, dtype=float)
+    out = np.zeros((len(model.input_names), du.shape[1]))
+    out[: len(model.factors)] = beyond_coverage(model.coverage, du[: len(model.factors)], model.factors)
+    return out

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from gateway.adaptive.filter import Z95, AdaptiveEstimator, DriftSettings
+from gateway.adaptive.offline import model_beyond
 from gateway.adaptive.probes import PROBE_BLOCK_WORDS, Probe, ProbeDecision, decode_probe_block
 from gateway.clock import Clock
 from gateway.errors import CompensationError, DriverError, RecordingError
@@ -153,16 +154,21 @@ class ProbedTracker(DisplacementTracker):
         self.decisions: list[ProbeDecision] = []
 
     # -- the hooks of DisplacementTracker ---------------------------------------------------------------------------
-    def _stepped(self, index: int) -> None:
-        self.adaptive.step(self.stepper.contributions(), (index + 1) * self.window_s)
+    def _stepped(self, index: int, du: np.ndarray) -> None:
+        # beyond the model's coverage the band widens (AdaptiveEstimator.step)
+        beyond = model_beyond(self.model, np.asarray(du, dtype=float)[:, None])
+        self.adaptive.step(self.stepper.contributions(), (index + 1) * self.window_s,
+                           None if beyond is None else beyond[:, 0])
 
     def _rebuilt(self, first_index: int, du: np.ndarray) -> None:
         contributions = self.dm.contributions(du)
+        beyond = model_beyond(self.model, du)
         stored: dict[int, list[Probe]] = {}
         for window, probe in self.probe_store.probes(since_window=first_index):
             stored.setdefault(window, []).append(probe)
         for k in range(du.shape[1]):
-            self.adaptive.step(contributions[:, :, k], (first_index + k + 1) * self.window_s)
+            self.adaptive.step(contributions[:, :, k], (first_index + k + 1) * self.window_s,
+                               None if beyond is None else beyond[:, k])
             for probe in stored.get(first_index + k, []):
                 self.adaptive.probe(probe)
         log.info("probe update rebuilt: %d windows, %d stored probes", du.shape[1],

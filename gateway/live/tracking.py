@@ -325,8 +325,8 @@ class DisplacementTracker:
                                    reason="rebuilt from the records: no live window yet")
         return du.shape[1]
 
-    def _stepped(self, index: int) -> None:
-        """Window ``index`` was stepped live (a filled one too); a subclass layers on it (gateway.adaptive)."""
+    def _stepped(self, index: int, du: np.ndarray) -> None:
+        """Window ``index`` was stepped live (a filled one too) with inputs ``du``; a subclass layers on it."""
 
     def _rebuilt(self, first_index: int, du: np.ndarray) -> None:
         """The rebuild replayed windows ``first_index``.. with inputs ``du``; a subclass layers on it."""
@@ -352,7 +352,7 @@ class DisplacementTracker:
         y = None
         for k in range(cols.shape[1]):
             y = self.stepper.step(cols[:, k])
-            self._stepped(record.index - cols.shape[1] + 1 + k)
+            self._stepped(record.index - cols.shape[1] + 1 + k, cols[:, k])
         assert y is not None
         inputs = "window" if not reason else "held" if self.history.holds(record.index) else "reference"
         if filled and not reason:

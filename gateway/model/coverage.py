@@ -125,6 +125,8 @@ class CoverageCheck:
     excursions: tuple[Excursion, ...] = ()
     #: per window, the excursions that window is in (indices into ``excursions``): for a per-window flag
     reasons: tuple[tuple[int, ...], ...] = field(default=())
+    #: (N,) how far the window lies beyond the region, the largest over factors (:func:`beyond_coverage`)
+    beyond: np.ndarray | None = None
 
     @property
     def windows_outside(self) -> int:
@@ -261,7 +263,56 @@ def check_coverage(cov: Coverage, du: np.ndarray, factors: Sequence[str],
     for m in masks:
         outside |= m
     reasons = tuple(tuple(i for i, m in enumerate(masks) if m[k]) for k in range(n)) if excursions else ()
-    return CoverageCheck(outside=outside, excursions=tuple(excursions), reasons=reasons)
+    far = beyond_coverage(cov, du[: len(factors)], factors) if n else np.zeros((len(factors), 0))
+    return CoverageCheck(outside=outside, excursions=tuple(excursions), reasons=reasons,
+                         beyond=far.max(axis=0) if len(factors) else np.zeros(n))
+
+
+def beyond_coverage(cov: Coverage, du: np.ndarray, factors: Sequence[str]) -> np.ndarray:
+    """How far each factor's deviation lies beyond the covered region, per window: (len(factors), N), >= 0.
+
+    Measured from where :func:`check_coverage` flags a window (the bound plus its margin), so it is 0 exactly
+    where the window is inside, on a log scale: ``log(1 + b)`` with ``b`` for a range in spans of the covered
+    range (half the covered span beyond the flag: log 1.5), for a ratio of co-varying factors in the same
+    relative measure (a ratio twice the flagged highest: log 2), given to both factors of the ratio (how the
+    model splits their response is what is unknown). Log, because the factors grow together and their
+    squares with them: at three times the covered speed the speed lies 2 spans beyond and a current^2 8.7;
+    in proportion (log 3 and log 9.7) they say the same. A factor the identification never moved counts
+    log 2 wherever it moves. NaN windows count as inside.
+    """
+    du = np.asarray(du, dtype=float)
+    n = du.shape[1] if du.ndim == 2 else 0
+    out = np.zeros((len(factors), n))
+    index = {f: k for k, f in enumerate(factors)}
+    for f, (lo, hi) in cov.ranges.items():
+        if f not in index or n == 0:
+            continue
+        x = np.nan_to_num(du[index[f]], nan=0.0)
+        span = hi - lo
+        if span > 0:
+            d = np.maximum((x - hi) / span, (lo - x) / span) - cov.margin
+        else:
+            d = np.where(np.abs(x) > 1e-9 * (1.0 + float(np.max(np.abs(x), initial=0.0))), 1.0, 0.0)
+        out[index[f]] = np.maximum(out[index[f]], np.maximum(d, 0.0))
+    for r in cov.ratios:
+        if r.of not in index or r.per not in index or n == 0:
+            continue
+        hi_per = cov.ranges.get(r.per, (0.0, 0.0))[1]
+        x_of, x_per = du[index[r.of]], du[index[r.per]]
+        on = np.isfinite(x_of) & np.isfinite(x_per) & (x_per >= cov.on_share * hi_per) & (x_per > 0)
+        ratio = np.where(on, x_of / np.where(on, x_per, 1.0), np.nan)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            if r.low > 0:
+                above, below = r.high * (1 + cov.margin), r.low / (1 + cov.margin)
+                d = np.maximum(ratio / above - 1.0, below / np.where(ratio > 0, ratio, np.nan) - 1.0)
+                d = np.where(on & (ratio <= 0), 1.0, d)
+            else:
+                w = max(r.high - r.low, abs(r.high), abs(r.low), 1e-300)
+                d = np.maximum(ratio - (r.high + cov.margin * w), (r.low - cov.margin * w) - ratio) / w
+        d = np.where(on, np.nan_to_num(np.maximum(d, 0.0), nan=0.0), 0.0)
+        for f in (r.of, r.per):
+            out[index[f]] = np.maximum(out[index[f]], d)
+    return np.log1p(out)
 
 
 # ------------------------------------------------------------------------------------------------ TOML -----
