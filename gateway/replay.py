@@ -111,7 +111,7 @@ class Estimate:
             cols[f"{a}_resid_um"] = self.residual[i]
         if self.coverage is not None:
             cols["outside_coverage"] = self.coverage.outside.astype(float)
-            if self.coverage.beyond is not None:  # how far, in covered spans: the band widens with it
+            if self.coverage.beyond is not None:  # how far beyond: log(1 + covered spans), the largest factor
                 cols["beyond_coverage"] = self.coverage.beyond
         return format_recording(time_s=self.time_s, columns=cols, meta={**self.settings, **(meta or {})})
 

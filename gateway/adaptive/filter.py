@@ -75,7 +75,7 @@ class DriftSettings:
     #: beyond the model's coverage a path's relative gain sd is at least this times how far its factor lies
     #: beyond (gateway.model.coverage.beyond_coverage: log(1 + covered spans)); 0 (the default): coverage does
     #: not widen the band. Off because it is not calibrated: on bench/adaptive.py 0.05 and 0.1 lifted the
-    #: band's worst coverage beyond coverage (z 39.9 % -> 86.1 / 98.3 %) but left most of those windows covered
+    #: band's worst coverage beyond coverage (z 39.9 % -> 86.1 / 94.5 %) but left most of those windows covered
     #: 99-100 % and the whole run's calibration worse (87 -> 70 / 65 of 162 case-axes in 90-98 %)
     extrapolation_gain_sd: float = 0.0
 
