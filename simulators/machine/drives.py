@@ -50,7 +50,16 @@ class SpindleTimeline:
     """The spindle's motion as pieces.
 
     Per piece: start ``t0`` (s), ``kind``, start speed ``w0`` and ``wt`` (the command on a linear piece, the
-    asymptote on a torque-limited one), ``sign`` (+1 accelerating, -1 braking).
+    asymptote on a torque-limited one), ``sign`` (+1 accelerating, -1 braking), and ``load_nm``: the cutting
+    torque on the spindle (Nm, 0 without a cut).
+
+    The cutting load: a job that cuts takes a constant cutting power ``P`` (W, the scenario's
+    ``cutting_kw``) at its commanded speed, so its torque is ``P / w_c``. The tool engages once the
+    spindle is in its linear region at that command (after the acceleration ramp), and the speed loop
+    feeds the load's torque forward to the current loop: the motor torque is the controller's torque plus
+    the load, the speed is unchanged (the 50 ms loop's speed dip at engagement is left out). The torque
+    then raises ``iq = T / k_T`` and with it both currents and their Joule heat (the heat model's
+    stator and rotor losses); the cutting heat at the tool and workpiece is not modelled.
     """
 
     params: SpindleParams
@@ -59,27 +68,39 @@ class SpindleTimeline:
     w0: np.ndarray
     wt: np.ndarray
     sign: np.ndarray
+    load_nm: np.ndarray | None = None
 
     @classmethod
-    def compile(cls, params: SpindleParams, times_s: Sequence[float], commands_rpm: Sequence[float]
-                ) -> SpindleTimeline:
-        """Pieces for speed commands ``commands_rpm[i]`` given at ``times_s[i]`` (sorted, first at 0)."""
+    def compile(cls, params: SpindleParams, times_s: Sequence[float], commands_rpm: Sequence[float],
+                cutting_w: Sequence[float] | None = None) -> SpindleTimeline:
+        """Pieces for speed commands ``commands_rpm[i]`` given at ``times_s[i]`` (sorted, first at 0).
+
+        ``cutting_w[i]``: the cutting power (W) taken while command ``i`` holds (none by default).
+        """
         if params.viscous_nm_s <= 0 or params.time_constant_s <= 0:
             raise ValueError("spindle viscous drag and time constant must be > 0")
         pieces: list[tuple[float, int, float, float, float]] = []
+        loads: list[float] = []
         w = 0.0
         times = [float(t) for t in times_s]
-        for i, (t, rpm) in enumerate(zip(times, commands_rpm, strict=True)):
+        cuts = [0.0] * len(times) if cutting_w is None else [float(c) for c in cutting_w]
+        for i, (t, rpm, cut) in enumerate(zip(times, commands_rpm, cuts, strict=True)):
             t_end = times[i + 1] if i + 1 < len(times) else math.inf
             if t_end > t:
-                w = _advance(params, w, float(rpm) * RAD_PER_RPM, t, t_end, pieces)
-        merged = [pieces[0]]
-        for p in pieces[1:]:  # consecutive "off" pieces are one
+                wc = float(rpm) * RAD_PER_RPM
+                first = len(pieces)
+                w = _advance(params, w, wc, t, t_end, pieces)
+                load = cut / wc if cut > 0.0 and wc > 0.0 else 0.0
+                loads += [load if piece[1] == LIN else 0.0 for piece in pieces[first:]]
+        merged, merged_loads = [pieces[0]], [loads[0]]
+        for p, load in zip(pieces[1:], loads[1:], strict=True):  # consecutive "off" pieces are one
             if not (p[1] == OFF and merged[-1][1] == OFF):
                 merged.append(p)
+                merged_loads.append(load)
         arr = np.array(merged, dtype=float)
+        load_arr = np.array(merged_loads, dtype=float)
         return cls(params=params, t0=arr[:, 0].copy(), kind=arr[:, 1].astype(np.int8), w0=arr[:, 2].copy(),
-                   wt=arr[:, 3].copy(), sign=arr[:, 4].copy())
+                   wt=arr[:, 3].copy(), sign=arr[:, 4].copy(), load_nm=load_arr if load_arr.any() else None)
 
     def evaluate(self, t: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Speed (rad/s), motor torque (Nm) and drive-on mask at times ``t`` on pieces ``idx``."""
@@ -94,6 +115,8 @@ class SpindleTimeline:
             wl = wt[lin] + (w0[lin] - wt[lin]) * np.exp(-dt[lin] / p.time_constant_s)
             w[lin] = wl
             torque[lin] = p.inertia_kg_m2 * (wt[lin] - wl) / p.time_constant_s + p.coulomb_nm + p.viscous_nm_s * wl
+            if self.load_nm is not None:  # without a cut nothing is added: the same sums, bit for bit
+                torque[lin] += self.load_nm[idx[lin]]
         sat = kind == SAT_TORQUE
         if sat.any():
             w[sat] = w0[sat] + (w0[sat] - wt[sat]) * np.expm1(-dt[sat] * p.viscous_nm_s / p.inertia_kg_m2)

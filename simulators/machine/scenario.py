@@ -29,6 +29,8 @@ A scenario file::
     feed_mm_min = 6000                # path feed rate
     accel_m_s2 = 2.0                  # path acceleration (default: the axes' limit)
     dwell_s = 0.0                     # pause at each end of a stroke
+    cutting_kw = 0.0                  # cutting power at the spindle while at speed (default 0: no cut);
+                                      # its torque P / w at the commanded speed raises the motor currents
 
     [effects.eddy_loss]               # switch an effect on (see simulators/machine/effects.py)
     loss_w_at_1000rpm = 15
@@ -47,7 +49,7 @@ from pathlib import Path
 from gateway.errors import SimulationError, did_you_mean
 from gateway.tomlcheck import NAME, Table, TomlDoc, describe
 from simulators.machine.effects import EFFECTS, Effects, parse_effect
-from simulators.machine.params import AXES, DEFAULT_MACHINE, MachineParams
+from simulators.machine.params import AXES, DEFAULT_MACHINE, RAD_PER_RPM, MachineParams
 
 BUNDLED_PACKAGE = "simulators.scenarios"
 
@@ -67,6 +69,8 @@ class Segment:
     feed_mm_min: float = 0.0
     accel_m_s2: float = 0.0
     dwell_s: float = 0.0
+    #: cutting power taken at the spindle once it runs at its commanded speed (W); 0: no cut
+    cutting_w: float = 0.0
 
     @property
     def end_s(self) -> float:
@@ -247,6 +251,9 @@ def _parse_segment(name: str, t: Table, start_s: float, machine: MachineParams) 
     feed = t.float("feed_mm_min", default=None if moving else 0.0, min=0.0, min_exclusive=True, max=1e5)
     accel = t.float("accel_m_s2", default=0.0, min=0.0, min_exclusive=True, max=100.0)
     dwell = t.float("dwell_s", default=0.0, min=0.0, max=3600.0)
+    cutting_kw = t.float("cutting_kw", default=0.0, min=0.0, max=1000.0)
+    if cutting_kw and speeds is not None:
+        cutting_kw = _check_cut(t, cutting_kw, speeds, machine)
     if not moving:
         for key in ("feed_mm_min", "accel_m_s2", "dwell_s"):
             if key in t:
@@ -261,7 +268,31 @@ def _parse_segment(name: str, t: Table, start_s: float, machine: MachineParams) 
             return None
     return Segment(name=name, start_s=start_s, duration_s=minutes * 60.0, spindle_rpm=speeds,
                    changes_per_min=rate, stroke_mm=stroke, feed_mm_min=feed or 0.0,
-                   accel_m_s2=accel_value, dwell_s=dwell or 0.0)
+                   accel_m_s2=accel_value, dwell_s=dwell or 0.0, cutting_w=(cutting_kw or 0.0) * 1000.0)
+
+
+def _check_cut(t: Table, cutting_kw: float, speeds: tuple[float, ...], machine: MachineParams) -> float | None:
+    """The cutting power if the spindle can take it at every speed of the segment, else ``None``.
+
+    The cutting torque plus the friction at speed must lie within the drive's torque limit there
+    (constant power above base speed).
+    """
+    sp = machine.spindle
+    if min(speeds) <= 0.0:
+        t.problem("cutting_kw", f"given for a segment with the spindle at 0 rpm: expected spindle_rpm > 0 "
+                                f"with a cut, got cutting_kw = {cutting_kw:g}")
+        return None
+    for rpm in speeds:
+        w = rpm * RAD_PER_RPM
+        need = cutting_kw * 1000.0 / w + sp.coulomb_nm + sp.viscous_nm_s * w
+        limit = sp.torque_limit_nm * min(1.0, sp.omega_base / w)
+        if need > limit:
+            t.problem("cutting_kw", f"expected a cutting power the spindle can take at {rpm:g} rpm (cutting "
+                                    f"torque plus friction <= {limit:.4g} Nm, the drive's limit there: at most "
+                                    f"{(limit - sp.coulomb_nm - sp.viscous_nm_s * w) * w / 1000.0:.3g} kW), "
+                                    f"got {cutting_kw:g}")
+            return None
+    return cutting_kw
 
 
 def _parse_speeds(t: Table, max_rpm: float) -> tuple[tuple[float, ...] | None, float]:

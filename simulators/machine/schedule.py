@@ -20,7 +20,13 @@ from simulators.machine.scenario import Scenario, Segment
 
 def spindle_commands(scenario: Scenario) -> tuple[list[float], list[float]]:
     """Speed command times (s) and values (rpm): 0 at the start and after every segment."""
-    times, rpm = [0.0], [0.0]
+    times, rpm, _ = spindle_commands_with_cut(scenario)
+    return times, rpm
+
+
+def spindle_commands_with_cut(scenario: Scenario) -> tuple[list[float], list[float], list[float]]:
+    """Speed command times (s), values (rpm) and the cutting power (W) taken while each one holds."""
+    times, rpm, cut = [0.0], [0.0], [0.0]
     for seg in scenario.segments:
         if seg.changes_per_min > 0:
             step = 60.0 / seg.changes_per_min
@@ -28,12 +34,15 @@ def spindle_commands(scenario: Scenario) -> tuple[list[float], list[float]]:
             k = np.arange(n)
             times.extend((seg.start_s + k * step).tolist())
             rpm.extend(np.take(seg.spindle_rpm, k % len(seg.spindle_rpm)).tolist())
+            cut.extend([seg.cutting_w] * n)
         else:
             times.append(seg.start_s)
             rpm.append(seg.spindle_rpm[0])
+            cut.append(seg.cutting_w)
         times.append(seg.end_s)
         rpm.append(0.0)
-    return times, rpm
+        cut.append(0.0)
+    return times, rpm, cut
 
 
 def _move_pattern(seg: Segment) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
@@ -108,8 +117,8 @@ def axis_pieces(scenario: Scenario) -> dict[str, tuple[np.ndarray, ...]]:
 
 def compile_drives(scenario: Scenario, machine: MachineParams) -> DriveTimeline:
     """The drives' pieces for a whole scenario (and at rest for ever after it)."""
-    times, rpm = spindle_commands(scenario)
-    spindle = SpindleTimeline.compile(machine.spindle, times, rpm)
+    times, rpm, cut = spindle_commands_with_cut(scenario)
+    spindle = SpindleTimeline.compile(machine.spindle, times, rpm, cut if any(cut) else None)
     axes = {}
     for a, (t0, v0, acc, direction) in axis_pieces(scenario).items():
         axes[a] = AxisTimeline(params=machine.axes[a], t0=t0, v0=v0, a=acc, direction=direction)
