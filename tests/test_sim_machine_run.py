@@ -10,11 +10,12 @@ import pytest
 
 from gateway.cli import main
 from gateway.clock import ManualClock
+from gateway.errors import SimulationError
 from gateway.recording import read_recording
 from simulators.live import LiveSource
 from simulators.machine.drives import CHANNELS, FACTORS
 from simulators.machine.live import LiveMachine
-from simulators.machine.params import AXES
+from simulators.machine.params import AXES, DEFAULT_MACHINE, RAD_PER_RPM
 from simulators.machine.run import simulate
 from simulators.machine.scenario import load_scenario, parse_scenario_text
 
@@ -226,3 +227,44 @@ def test_live_source_is_thread_safe():
     expected = [reference.values(t)["z_um"] for t in times]
     for k in range(3):
         assert results[k] == expected
+
+
+CUT = """
+[scenario]
+name = "cut"
+seed = 3
+duration_h = 3
+[segments.job]
+minutes = 120
+spindle_rpm = 1000
+{cut}
+"""
+
+
+def test_a_cutting_load_raises_the_spindle_currents_by_its_torque_and_the_displacement():
+    """3 kW at 1000 rpm is 28.6 Nm on top of the friction: I1^2 = Im^2 + ((T_f + T_cut) / k_T)^2."""
+    plain = simulate(parse_scenario_text(CUT.format(cut="")))
+    cut = simulate(parse_scenario_text(CUT.format(cut="cutting_kw = 3.0")))
+    sp = DEFAULT_MACHINE.spindle
+    w = 1000 * RAD_PER_RPM
+    friction = sp.coulomb_nm + sp.viscous_nm_s * w
+    i1_sq = lambda t: sp.magnetising_a ** 2 + (t / sp.torque_constant_nm_per_a) ** 2  # noqa: E731
+    expected = i1_sq(friction + 3000.0 / w) / i1_sq(friction)  # 2.99: the stated factor
+    a, b = plain.recording_columns(), cut.recording_columns()
+    steady = slice(10, 120)  # whole minutes at speed, after the first one's ramp
+    ratio = b["spindle_i1_sq"][steady] / a["spindle_i1_sq"][steady]
+    assert np.allclose(ratio, expected, rtol=1e-3), (ratio.min(), ratio.max(), expected)
+    assert np.all(b["spindle_i2_sq"][steady] > 100 * a["spindle_i2_sq"][steady])
+    # same speed, more Joule heat in the motor: every axis moves further (Z most, the spindle's own axis)
+    peak_plain, peak_cut = np.abs(plain.true_um).max(axis=0), np.abs(cut.true_um).max(axis=0)
+    assert np.all(peak_cut > 1.3 * peak_plain), (peak_plain, peak_cut)
+    assert peak_cut[2] - peak_plain[2] > 5.0
+
+
+def test_a_cut_the_spindle_cannot_take_is_refused_with_the_limit():
+    with pytest.raises(SimulationError, match=r"segments.job.cutting_kw: expected a cutting power the spindle can "
+                                              r"take at 1000 rpm .* at most 7.4\d kW\), got 9"):
+        parse_scenario_text(CUT.format(cut="cutting_kw = 9"))
+    with pytest.raises(SimulationError, match=r"segments.idle.cutting_kw: given for a segment with the spindle at "
+                                              r"0 rpm"):
+        parse_scenario_text(CUT.format(cut="[segments.idle]\nminutes = 5\ncutting_kw = 1"))
