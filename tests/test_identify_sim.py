@@ -100,3 +100,22 @@ def test_estimate_warns_where_the_model_extrapolates(identified):
     paper_kind = estimate(result.model, simulate(load_scenario("spindle-feeds")).recording())
     assert paper_kind.coverage.windows_outside == 0
     assert not [n for n in paper_kind.notes if "coverage" in n]
+
+
+def test_identify_with_a_bundled_profile_never_writes_into_the_installed_package(sim_csv_dir, tmp_path, monkeypatch,
+                                                                                  capsys):
+    # a new user's first identify names the bundled profile: its model file sits inside the package
+    from sim_shared import SIM_EXPERIMENTS
+
+    from gateway import BUNDLED
+    from gateway.cli import main
+
+    bundled_model = BUNDLED / "sim-vmc.model.toml"
+    before = bundled_model.read_bytes()
+    monkeypatch.chdir(tmp_path)
+    runs = [str(sim_csv_dir / f"{n}.csv") for n in SIM_EXPERIMENTS]
+    assert main(["identify", "--profile", "sim-vmc", *runs]) == 0
+    out = capsys.readouterr().out
+    assert bundled_model.read_bytes() == before
+    assert (tmp_path / "sim-vmc.model.toml").is_file()
+    assert f"pass it on with --model {tmp_path / 'sim-vmc.model.toml'}" in out

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from gateway import BUNDLED
 from gateway.commands._common import add_recording_options, positive_int, progress_bar, read_recordings
 from gateway.errors import UsageError
 from gateway.identify import identify
@@ -78,6 +79,11 @@ def run(args: argparse.Namespace) -> int:
     finally:
         close()
     out = Path(args.output) if args.output else profile.model_path
+    bundled = not args.output and _inside(out, BUNDLED)
+    if bundled:
+        # a bundled profile's model lives in the installed package: never overwrite it (a root-owned venv
+        # would refuse, an editable one would change the repository's reference model)
+        out = Path.cwd() / out.name
     save_model(result.model, out)
     print(f"identified {len(result.model.axes)} axes x {len(result.model.factors)} factors from "
           f"{len(recs)} experiment(s)" + (f" and {len(prod)} production run(s)" if prod else "")
@@ -95,4 +101,14 @@ def run(args: argparse.Namespace) -> int:
         plot_estimates(ests, args.plot, title=f"{profile.name}: identification fit ({args.method})")
         print(f"wrote {args.plot}")
     print(f"wrote {out}")
+    if bundled:
+        print(f"note: {profile.name} is a profile bundled with cncgw: its model was written here, not into the "
+              f"installed package; pass it on with --model {out}")
     return 0
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    try:
+        return path.resolve().is_relative_to(folder.resolve())
+    except OSError:
+        return False
