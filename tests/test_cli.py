@@ -162,6 +162,19 @@ def test_estimate_refuses_a_model_of_another_machine(workdir, capsys):
             in capsys.readouterr().err)
 
 
+def test_estimate_warns_when_the_model_names_another_machine(workdir, capsys):
+    # the same factors and axes, but identified on another machine: offline figures, with a warning
+    from gateway.model import FirstOrder, PathTF, save_model
+
+    twin = ThermalModel(axes=("z",), factors=("speed", "i_sq"), units={}, reference={}, machine="lathe-2", paths={
+        ("z", "speed"): PathTF(axis="z", factor="speed", terms=(FirstOrder(gain=0.01, tau_s=1800.0),))})
+    save_model(twin, "twin.toml")
+    assert main(["estimate", "--profile", "lathe.toml", "--model", "twin.toml", "val.csv"]) == 0
+    err = capsys.readouterr().err
+    assert 'twin.toml: the model names machine "lathe-2", this profile is machine' in err
+    assert "`cncgw run` refuses it" in err
+
+
 def test_console_script_exits_without_traceback(workdir):
     bad = Path("bad.csv")
     bad.write_text("time_s,speed,i_sq,x_um,z_um\n60,0,0,0,0\n120,0,zero,0,0\n")

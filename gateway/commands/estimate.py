@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +55,11 @@ def run(args: argparse.Namespace) -> int:
     """Estimate every recording; print metrics; write CSV and plot on request."""
     profile = load_profile(args.profile)
     model, model_path = load_model_for(profile, args.model)
+    if model.machine and model.machine != profile.name:
+        # offline it may be what the user wants (a twin machine); `cncgw run` refuses it
+        print(f'cncgw: warning: {model_path}: the model names machine "{model.machine}", this profile is machine '
+              f'"{profile.name}": these are the figures of another machine\'s model (`cncgw run` refuses it)',
+              file=sys.stderr)
     recs = read_recordings(args.recordings, profile, period_s=args.period_s, require_displacement=False)
     history = None
     if args.history:
