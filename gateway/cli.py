@@ -58,11 +58,13 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``cncgw`` with ``argv``; return the exit status."""
+    console = argv is None  # the process ends with this call (console script, python -m gateway.cli)
     argv = list(sys.argv[1:] if argv is None else argv)
     first = next((a for a in argv if not a.startswith("-")), None)  # the top level's options take no value
     known = {_command_name(m) for m in COMMAND_MODULES}
     parser = build_parser(first if first in known else None)
     args = parser.parse_args(argv)
+    args.console = console
     logging.basicConfig(
         level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",

@@ -147,3 +147,32 @@ def test_dry_run_at_10x_keeps_every_window_good_and_never_touches_the_cnc(tmp_pa
     assert not status.enabled
     writes, _ = audited(data)
     assert {w.mode for w in writes} <= {"dry-run"}
+
+
+def test_a_second_ctrl_c_does_not_cut_the_shutdown_short(tmp_path):
+    # a terminal's Ctrl-C reaches the whole process group, and impatient users press it twice: the gateway
+    # still releases the offsets, audits its stop and exits 0 (it used to exit 130 with no stop event)
+    clock = ScaledClock(60.0, origin=35 * 60.0)
+    machine = LiveMachine("spindle-1000rpm", clock=clock)
+    config = DeviceSetConfig(adc_rtu=None, can=None, dcon=None)
+    data = tmp_path / "data"
+    with serve(machine, clock, config) as devices:
+        profile = live_profile(devices, tmp_path / "dry.toml", enabled=False, opcua_port=None)
+        cmd = [sys.executable, "-m", "gateway.cli", "run", "--profile", str(profile), "--data", str(data),
+               "--speedup", "60", "--no-opcua", "--log-format", "json"]
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        try:
+            assert len(windows_logged(proc, 1, timeout_s=90.0)) == 1
+            proc.send_signal(signal.SIGINT)
+            time.sleep(0.05)
+            proc.send_signal(signal.SIGINT)
+            proc.wait(timeout=30)
+            rest = proc.stderr.read()
+        finally:
+            stop(proc, signal.SIGKILL)
+    # depending on how fast it closes, the second one lands while it stops (logged "already stopping") or
+    # while the process ends (ignored); before, it killed the process either way (exit 130 or -2)
+    assert proc.returncode == 0, rest[-2000:]
+    assert '"stopped"' in rest
+    _, events = audited(data)
+    assert [k for _, k, n, _ in events if n == "gateway"] == ["start", "stop"]

@@ -84,6 +84,11 @@ def _continue_from(profile: Any, data: Path) -> float:
         return 0.0 if store.last_index is None else (store.last_index + 1) * profile.sampling.window_s
 
 
+def _already_stopping(*_: object) -> None:
+    log.warning("already stopping: the gateway is releasing the offsets and closing its records (kill -9 "
+                "would cut that short; the CNC's watchdog would then clear the offsets)")
+
+
 def run(args: argparse.Namespace) -> int:
     """Run until stopped; return 0 after a clean stop."""
     profile = load_profile(args.profile)
@@ -111,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
     if args.speedup != 1.0:
         clock = ScaledClock(args.speedup, origin=_continue_from(profile, Path(args.data)))
     stop = threading.Event()
-    previous = None
+    previous = previous_int = None
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
     end = clock.now() + args.minutes * 60.0 if args.minutes else None
@@ -126,8 +131,16 @@ def run(args: argparse.Namespace) -> int:
                         break
             except KeyboardInterrupt:
                 log.info("stopping (Ctrl-C)")
+            if previous is not None:
+                # closing releases the offsets, audits the stop and closes the stores: a second Ctrl-C (or
+                # one a terminal sends to the whole process group) must not cut that short
+                previous_int = signal.signal(signal.SIGINT, _already_stopping)
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        if previous_int is not None:
+            # a process that ends now ignores a late second Ctrl-C (Python's teardown would die of it);
+            # called in-process, the caller's handler comes back
+            signal.signal(signal.SIGINT, signal.SIG_IGN if getattr(args, "console", False) else previous_int)
     log.info("stopped")
     return 0
