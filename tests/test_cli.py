@@ -140,6 +140,8 @@ def test_paper_method_from_the_cli(workdir, capsys):
      "argument --period-s: expected a number > 0, got '-3'"),
     (["identify", "--profile", "lathe.toml", "exp1.csv", "--structures", "third_order"], 2,
      "argument --structures: third_order: expected a comma-separated list from first_order, second_order, two_modes"),
+    (["demo", "-o", "d", "--hours", "1"], 2,
+     "cncgw: error: --hours 1: the validation run 'spindle-feeds' rests for its first 1 h (the spindle starts then)"),
 ])
 def test_user_mistakes_are_one_line_errors(workdir, capsys, argv, code, message):
     try:

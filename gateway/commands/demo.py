@@ -32,6 +32,7 @@ from pathlib import Path
 
 from gateway import BUNDLED
 from gateway.commands._common import plain, positive_float
+from gateway.errors import UsageError
 from gateway.identify import identify
 from gateway.model import save_model
 from gateway.profile import load_profile
@@ -66,6 +67,12 @@ def run(args: argparse.Namespace) -> int:
     from gateway.commands._common import progress_bar
     from simulators.machine import load_scenario, simulate, write_run
 
+    rest_s = load_scenario(VALIDATION).initial_idle_s
+    if args.hours * 3600.0 <= rest_s + 600.0:
+        # the machine rests first: a run that ends there compensates nothing and would print 0 % as a result
+        raise UsageError(f"--hours {args.hours:g}: the validation run '{VALIDATION}' rests for its first "
+                         f"{rest_s / 3600:g} h (the spindle starts then): expected more than {rest_s / 3600 + 1 / 6:g} "
+                         f"h, e.g. --hours 3 (the default 8 plays all of it)")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     profile = load_profile(PROFILE)
