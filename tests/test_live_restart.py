@@ -8,6 +8,7 @@ wall time), as a real CNC's few seconds would be against a gateway that systemd 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import itertools
 import json
@@ -116,21 +117,28 @@ def test_kill_9_and_restart(tmp_path):
     assert [k for _, k, n, _ in events if n == "gateway"] == ["start", "start", "stop"]  # the kill left no stop
 
 
+@contextlib.contextmanager
+def dry_run(tmp_path, data, *, speedup):
+    """The simulated machine 5 min into its 1000 rpm phase behind its devices, and `cncgw run` with compensation
+    off on them in a child process (JSON log on its stderr): yields (devices, process)."""
+    clock = ScaledClock(speedup, origin=35 * 60.0)
+    machine = LiveMachine("spindle-1000rpm", clock=clock)
+    config = DeviceSetConfig(adc_rtu=None, can=None, dcon=None)
+    with serve(machine, clock, config) as devices:
+        profile = live_profile(devices, tmp_path / "dry.toml", enabled=False, opcua_port=None)
+        cmd = [sys.executable, "-m", "gateway.cli", "run", "--profile", str(profile), "--data", str(data),
+               "--speedup", f"{speedup:g}", "--no-opcua", "--log-format", "json"]
+        yield devices, subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
 def test_dry_run_at_10x_keeps_every_window_good_and_never_touches_the_cnc(tmp_path):
     """The README's first step on a real machine: `cncgw run` with compensation off.
 
     The writer of a dry run has no heartbeat to send; it once woke without sleeping, took half a core and
     starved the sampler (every window "insufficient", the estimate stuck at 0).
     """
-    clock = ScaledClock(10.0, origin=35 * 60.0)  # 5 min into the 1000 rpm phase (from 30 min)
-    machine = LiveMachine("spindle-1000rpm", clock=clock)
-    config = DeviceSetConfig(adc_rtu=None, can=None, dcon=None)
     data = tmp_path / "data"
-    with serve(machine, clock, config) as devices:
-        profile = live_profile(devices, tmp_path / "dry.toml", enabled=False, opcua_port=None)
-        cmd = [sys.executable, "-m", "gateway.cli", "run", "--profile", str(profile), "--data", str(data),
-               "--speedup", "10", "--no-opcua", "--log-format", "json"]
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    with dry_run(tmp_path, data, speedup=10.0) as (devices, proc):
         try:
             windows = windows_logged(proc, 3, timeout_s=90.0)
         finally:
@@ -152,15 +160,8 @@ def test_dry_run_at_10x_keeps_every_window_good_and_never_touches_the_cnc(tmp_pa
 def test_a_second_ctrl_c_does_not_cut_the_shutdown_short(tmp_path):
     # a terminal's Ctrl-C reaches the whole process group, and impatient users press it twice: the gateway
     # still releases the offsets, audits its stop and exits 0 (it used to exit 130 with no stop event)
-    clock = ScaledClock(60.0, origin=35 * 60.0)
-    machine = LiveMachine("spindle-1000rpm", clock=clock)
-    config = DeviceSetConfig(adc_rtu=None, can=None, dcon=None)
     data = tmp_path / "data"
-    with serve(machine, clock, config) as devices:
-        profile = live_profile(devices, tmp_path / "dry.toml", enabled=False, opcua_port=None)
-        cmd = [sys.executable, "-m", "gateway.cli", "run", "--profile", str(profile), "--data", str(data),
-               "--speedup", "60", "--no-opcua", "--log-format", "json"]
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    with dry_run(tmp_path, data, speedup=60.0) as (_, proc):
         try:
             assert len(windows_logged(proc, 1, timeout_s=90.0)) == 1
             proc.send_signal(signal.SIGINT)
