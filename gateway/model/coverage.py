@@ -245,10 +245,7 @@ def check_coverage(cov: Coverage, du: np.ndarray, factors: Sequence[str],
     for r in cov.ratios:
         if r.of not in index or r.per not in index or n == 0:
             continue
-        hi_per = cov.ranges.get(r.per, (0.0, 0.0))[1]
-        x_of, x_per = du[index[r.of]], du[index[r.per]]
-        on = np.isfinite(x_of) & np.isfinite(x_per) & (x_per >= cov.on_share * hi_per) & (x_per > 0)
-        ratio = np.where(on, x_of / np.where(on, x_per, 1.0), np.nan)
+        on, ratio = _ratio(cov, r, du[index[r.of]], du[index[r.per]])
         if r.low > 0:
             above, below = r.high * (1 + cov.margin), r.low / (1 + cov.margin)
         else:
@@ -266,6 +263,16 @@ def check_coverage(cov: Coverage, du: np.ndarray, factors: Sequence[str],
     far = beyond_coverage(cov, du[: len(factors)], factors) if n else np.zeros((len(factors), 0))
     return CoverageCheck(outside=outside, excursions=tuple(excursions), reasons=reasons,
                          beyond=far.max(axis=0) if len(factors) else np.zeros(n))
+
+
+def _ratio(cov: Coverage, r: Ratio, x_of: np.ndarray, x_per: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where a ratio of co-varying factors is judged, and its value there (NaN elsewhere).
+
+    Judged where the "per" factor is on: at least ``on_share`` of its covered maximum.
+    """
+    hi_per = cov.ranges.get(r.per, (0.0, 0.0))[1]
+    on = np.isfinite(x_of) & np.isfinite(x_per) & (x_per >= cov.on_share * hi_per) & (x_per > 0)
+    return on, np.where(on, x_of / np.where(on, x_per, 1.0), np.nan)
 
 
 def beyond_coverage(cov: Coverage, du: np.ndarray, factors: Sequence[str]) -> np.ndarray:
@@ -297,10 +304,7 @@ def beyond_coverage(cov: Coverage, du: np.ndarray, factors: Sequence[str]) -> np
     for r in cov.ratios:
         if r.of not in index or r.per not in index or n == 0:
             continue
-        hi_per = cov.ranges.get(r.per, (0.0, 0.0))[1]
-        x_of, x_per = du[index[r.of]], du[index[r.per]]
-        on = np.isfinite(x_of) & np.isfinite(x_per) & (x_per >= cov.on_share * hi_per) & (x_per > 0)
-        ratio = np.where(on, x_of / np.where(on, x_per, 1.0), np.nan)
+        on, ratio = _ratio(cov, r, du[index[r.of]], du[index[r.per]])
         with np.errstate(invalid="ignore", divide="ignore"):
             if r.low > 0:
                 above, below = r.high * (1 + cov.margin), r.low / (1 + cov.margin)
