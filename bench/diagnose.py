@@ -440,10 +440,7 @@ def _truth_rms(csv_path: Path, effect: str) -> dict[str, float]:
     truth = csv_path.with_suffix(".truth.csv")
     if not effect or not truth.is_file():
         return {}
-    rows = [ln for ln in truth.read_text().splitlines() if ln and not ln.startswith("#")]
-    reader = csv.reader(rows)
-    head = next(reader)
-    data = np.array([[float(c) for c in r] for r in reader])
+    head, data = _read_table(truth)
     out = {}
     for a in AXES:
         col = f"effect_{effect}_{a}_um"

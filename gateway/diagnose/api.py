@@ -137,6 +137,7 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
         signals = candidate_signals(stack, speeds, currents)
         findings: dict[str, AxisFindings] = {}
         artefacts: dict[str, list[np.ndarray]] = {}
+        steps_um: dict[str, np.ndarray] = {}  # per axis, the sensor steps found (um, every window)
         for i, a in enumerate(model.axes):
             if not np.isfinite(stack.y[i]).any():
                 continue
@@ -144,14 +145,13 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
             noise = noise_level(stack, i, r)
             steps = find_steps(stack, i, r, noise)
             artefacts[a] = [s.column(stack) for s in steps]
-            r_clean = r - sum((s.size_um * s.column(stack) for s in steps), np.zeros(stack.n))
+            steps_um[a] = sum((s.size_um * c for s, c in zip(steps, artefacts[a], strict=True)), np.zeros(stack.n))
+            r_clean = r - steps_um[a]
             findings[a] = AxisFindings(
                 axis=a, residual=r, noise=noise, windows=located_windows(stack, r_clean, noise), steps=steps,
                 change_points=change_points(stack, r_clean), states=operating_states(stack, r_clean),
                 lines=spectral_lines(stack, r_clean), correlations=correlations(stack, r_clean, signals))
-        adequacy = assess(stack, model, {a: f.noise.sigma_um for a, f in findings.items()},
-                          {a: sum((s.size_um * s.column(stack) for s in f.steps), np.zeros(stack.n))
-                           for a, f in findings.items() if f.steps})
+        adequacy = assess(stack, model, {a: f.noise.sigma_um for a, f in findings.items()}, steps_um)
         measured = np.isfinite(stack.y).any(axis=0)
         block = make_blocks(stack.bounds, measured, options.blocks)
         hyps = catalogue(stack, model, infos, families=families)

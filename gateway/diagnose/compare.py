@@ -7,8 +7,9 @@
   production alike), with the accepted hypotheses' terms when there are any; without them it is "more
   data alone".
 
-Each is scored the same way: per held-out block, its gains (path gains included) are refitted on the
-other blocks at the time constants and settings chosen on all data, and predicted on the zero its recording's
+Each is scored the same way: per held-out block, its gains are refitted on the other blocks at the time
+constants and settings chosen on all data (the re-identified model is identified again without the block,
+time constants too: :func:`~gateway.diagnose.refit.held_out_reidentified`), and predicted on the zero its recording's
 first block gives (that block is never scored: the state at a recording's start is not known, a gateway
 that has been running knows it from its records). Nuisance
 (a recording's own drift or initial state) is fitted while identifying and left out of the scoring, as
@@ -101,19 +102,22 @@ def compare(stack: Stack, model: ThermalModel, block: np.ndarray, accepted: Sequ
             rows = np.flatnonzero(ok)
             if len(rows) < 8 or k == 0:
                 continue
-            zeros = []  # each recording's offset column and its first block, where its zero is taken
-            cols = []
-            for c in offsets:
-                if np.any(c[rows]):
-                    zeros.append((len(cols), ((c != 0) & (block == BURN_IN))[rows]))
-                    cols.append(c[rows])
-            cols += [c[rows] for c in artefacts.get(a, [])]
             if key == "reidentified":
+                # identified again without each fold (refit.held_out_reidentified): no gains refitted here
                 assert reid is not None
-                target = (stack.y[i] - reid.fixed[a])[rows]
-                cols += [c[rows] for c in reid.columns.get(a, [])]
+                if a not in nested:
+                    continue
                 shift = reid.fixed[a][rows]
+                target = stack.y[i][rows] - shift
+                p = nested[a][rows] - shift
             else:
+                zeros = []  # each recording's offset column and its first block, where its zero is taken
+                cols = []
+                for c in offsets:
+                    if np.any(c[rows]):
+                        zeros.append((len(cols), ((c != 0) & (block == BURN_IN))[rows]))
+                        cols.append(c[rows])
+                cols += [c[rows] for c in artefacts.get(a, [])]
                 target = (stack.y[i] - stack.base[i])[rows]
                 shift = stack.base[i][rows]
                 if key == "terms":
@@ -121,11 +125,6 @@ def compare(stack: Stack, model: ThermalModel, block: np.ndarray, accepted: Sequ
                         e = t.evidence.get(a)
                         if e is not None and e.included and e.setting is not None:
                             cols += [c[rows] for c in setting_columns(stack, e.setting)[0]]
-            if key == "reidentified":
-                if a not in nested:
-                    continue
-                p = nested[a][rows] - shift
-            else:
                 p = held_out(target, folds[rows], cols, zeros=zeros)
             err = target - p
             sc = score[rows]

@@ -24,6 +24,7 @@ from gateway.diagnose.data import Stack, lag, log_grid
 from gateway.diagnose.extend import extend_model
 from gateway.diagnose.hypotheses import Setting
 from gateway.diagnose.search import Term, Trial, setting_columns
+from gateway.diagnose.select import BURN_IN
 from gateway.errors import IdentificationError
 from gateway.identify.common import Bounds, ExperimentSet
 from gateway.identify.joint import AxisProblem, AxisSelection, select_axis
@@ -90,9 +91,7 @@ class Reidentified:
 
     model: ThermalModel
     prediction: np.ndarray  # (axes, windows of the stack): from rest at each recording's start, no offsets
-    #: per axis, the regressors of its gains at the fitted time constants (every path term at unit gain, every
-    #: accepted component), and what it holds fixed: the held-out scoring refits these gains per fold
-    columns: dict[str, list[np.ndarray]]
+    #: per axis, what it holds fixed (the paths of derived inputs the identified model already had)
     fixed: dict[str, np.ndarray]
     selections: dict[str, AxisSelection]
     terms: dict[str, list[Term]]
@@ -128,7 +127,6 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
     selections: dict[str, AxisSelection] = {}
     extras: dict[str, list[np.ndarray]] = {}
     n_phys: dict[str, int] = {}
-    columns: dict[str, list[np.ndarray]] = {}
     fixed: dict[str, np.ndarray] = {}
     terms: dict[str, list[Term]] = {}
     prediction = np.zeros_like(stack.base)
@@ -167,9 +165,7 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
         # nuisance (a recording's own drift or initial state), the way the scoring and `cncgw estimate` see
         # the model: each recording from rest, a free zero per recording
         fitted = fit.paths(factors)
-        units = [(j, stack.response(stack.du[p.factor], (term.with_gain(1.0),), p.delay_s))
-                 for j, p in enumerate(fitted) for term in p.terms]
-        cols = [u for _, u in units] + phys
+        cols = unit_columns(stack, fitted) + phys
         g = final_gains(stack.y[i] - frozen[i], cols, stack.per_recording() + list((artefacts or {}).get(a, [])))
         axis_paths, k = [], 0
         for p in fitted:
@@ -186,13 +182,12 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
                           np.zeros(stack.n))
             terms[a].append(Term(trial=t, axis=a, setting=setting, gains=np.asarray(gs), contribution=contrib))
         prediction[i] = frozen[i] + sum((x * c for x, c in zip(g, cols, strict=True)), np.zeros(stack.n))
-        columns[a] = cols
         fixed[a] = frozen[i]
     base = model.with_paths(paths, info={**model.info, "reidentified": {
         "recordings": list(stack.names), "structure": {a: s.chosen.structures[0] for a, s in selections.items()},
         "pruned": {a: list(s.pruned) for a, s in selections.items()}}})
     extended = extend_model(base, terms)
-    return Reidentified(model=extended, prediction=prediction, columns=columns, fixed=fixed, selections=selections,
+    return Reidentified(model=extended, prediction=prediction, fixed=fixed, selections=selections,
                         terms=terms, extras=extras, n_phys=n_phys, bounds=bounds, wall_s=time.perf_counter() - t0)
 
 
@@ -219,8 +214,6 @@ def held_out_reidentified(stack: Stack, model: ThermalModel, reid: Reidentified,
     recording's zero (its first block, ``block == BURN_IN``, as the other candidates are). Returns the
     prediction of the measurement (the fixed part included), NaN outside the held-out folds.
     """
-    from gateway.diagnose.select import BURN_IN  # the held-out conventions are select's
-
     factors = model.factors
     offsets = stack.per_recording()
     out: dict[str, np.ndarray] = {}
@@ -242,9 +235,7 @@ def held_out_reidentified(stack: Stack, model: ThermalModel, reid: Reidentified,
                 fit = problem.fit(sel.chosen.structures, sel.chosen.thetas)
             except (ValueError, IdentificationError):
                 continue  # nothing left to fit on: the fold stays unscored for this candidate
-            units = [stack.response(stack.du[p.factor], (term.with_gain(1.0),), p.delay_s)
-                     for p in fit.paths(factors) for term in p.terms]
-            cols = units + list(phys)
+            cols = unit_columns(stack, fit.paths(factors)) + list(phys)
             g = final_gains(masked[i], cols, offsets + list((artefacts or {}).get(a, [])))
             shape = sum((x * c for x, c in zip(g, cols, strict=True)), np.zeros(stack.n))
             for c in offsets:
@@ -256,6 +247,11 @@ def held_out_reidentified(stack: Stack, model: ThermalModel, reid: Reidentified,
                 pred[member] = shape[member] + zero
         out[a] = pred + reid.fixed[a]
     return out
+
+
+def unit_columns(stack: Stack, paths: Sequence[PathTF]) -> list[np.ndarray]:
+    """Every term of ``paths`` at unit gain, each recording from rest: the regressors of their gains."""
+    return [stack.response(stack.du[p.factor], (term.with_gain(1.0),), p.delay_s) for p in paths for term in p.terms]
 
 
 def final_gains(target: np.ndarray, columns: Sequence[np.ndarray], free: Sequence[np.ndarray]) -> np.ndarray:

@@ -181,10 +181,11 @@ def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = 
 
     L += ["## Models compared on held-out data", "",
           f"Held out: {d.comparison.scheme}. What is held out is predicted from a fit on the rest: every "
-          "candidate's gains (the path gains of a re-identified model too) are refitted without it, at the time "
-          "constants chosen on all data, and each recording is predicted from its start at rest on the zero "
-          "`cncgw estimate` takes (its idle lead-in). A recording's own drift or initial state is fitted while "
-          "identifying and left out here, as `cncgw estimate` and `cncgw run` know nothing of it. A candidate "
+          "candidate's gains are refitted without it (at the time constants chosen on all data; a re-identified "
+          "model is identified again without it, time constants too), and each recording is predicted from its "
+          "start at rest on the zero `cncgw estimate` takes (its idle lead-in). A recording's own drift or "
+          "initial state is fitted while identifying and left out here, as `cncgw estimate` and `cncgw run` "
+          "know nothing of it. A candidate "
           "passes when it is better consistently over the blocks (signed-rank test) and relevantly; the best that "
           "passes is written.", "",
           "| model | verdict | " + " | ".join(f"{a}: RMS / max abs / % of peak" for a in d.model.axes) + " |",
