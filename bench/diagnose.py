@@ -498,7 +498,7 @@ def run_bench_case(protocol: str, effect_name: str, variant: int, cache: Path, r
             fresh = [record(t, n, cache) for n, t in plan.fresh.items()]
             model = work / "sim-vmc.model.toml"
             t0 = time.perf_counter()
-            run_cli(["identify", "--profile", PROFILE, *exps, "-o", model])
+            run_cli(["identify", "--profile", PROFILE, *exps, "-o", model, "--force"])
             row.identify_s = time.perf_counter() - t0
             seen = [*exps, *days] if protocol == "new" and not seen_days_only else days
             t0, c0 = time.perf_counter(), time.process_time()
@@ -683,7 +683,8 @@ def run_ace(report: Path | None) -> list[str]:
         out = report / "ace-lathe" if report is not None else work / "diag"
         p60 = ["--period-s", "60"]
         try:
-            run_cli(["identify", "--profile", ACE_PROFILE, *p60, *[days[d] for d in range(1, 13)], "-o", model])
+            run_cli(["identify", "--profile", ACE_PROFILE, *p60, *[days[d] for d in range(1, 13)], "-o", model,
+                     "--force"])
             t0 = time.perf_counter()
             run_cli(["diagnose", "--profile", ACE_PROFILE, "--model", model, *p60, "--split-by", "day", train,
                      "--validate", *[days[d] for d in range(13, 19)], "-o", out, "--force"])
@@ -725,7 +726,7 @@ def run_sjtu(report: Path | None) -> list[str]:
         out = report / "sjtu-spindle" if report is not None else work / "diag"
         p60 = ["--period-s", "60"]
         try:
-            run_cli(["identify", "--profile", SJTU_PROFILE, *p60, first, "-o", model])
+            run_cli(["identify", "--profile", SJTU_PROFILE, *p60, first, "-o", model, "--force"])
             t0 = time.perf_counter()
             run_cli(["diagnose", "--profile", SJTU_PROFILE, "--model", model, *p60, SJTU_CSV, "-o", out, "--force"])
             wall = time.perf_counter() - t0

@@ -81,7 +81,8 @@ def make_input(command: str, rng: random.Random, work: Path) -> list[str]:
         (work / "m.model.toml").write_text(model)
         return ["estimate", "--profile", str(fi.SIM_PROFILE), "--model", str(work / "m.model.toml"),
                 str(work / "r.csv")]
-    return ["identify", "--profile", str(fi.SIM_PROFILE), str(work / "r.csv"), "-o", str(work / "out.model.toml")]
+    return ["identify", "--profile", str(fi.SIM_PROFILE), str(work / "r.csv"), "-o", str(work / "out.model.toml"),
+            "--force"]
 
 
 def _vm_size_bytes() -> int:

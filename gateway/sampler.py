@@ -389,6 +389,9 @@ class Acquisition:
                 burst_channels=bursts if s.displacement_channels else (), burst_s=s.burst_s, spin_s=spin_s,
                 rt_priority=rt_priority, stepped=self.stepped))
         self._state = "new"
+        #: run_stepped's tick grid: the clock at its first call and the next tick number per sampler
+        self._step_origin_s: float | None = None
+        self._step_counts: dict[int, int] = {}
 
     @staticmethod
     def _grace_s(profile: Profile) -> float:
@@ -439,8 +442,11 @@ class Acquisition:
     def run_stepped(self, until_s: float) -> None:
         """ManualClock only: tick every device in clock time up to ``until_s``, closing windows inline.
 
-        Each device ticks at ``origin + n * period`` of clock time; the clock is set to each tick's time
-        before the read, so the devices see exactly that instant.
+        Each device ticks at ``origin + n * period`` of clock time, ``origin`` the clock at the first call:
+        the grid runs on across calls, so stepping in chunks (the live gateway steps by heartbeats) samples
+        exactly as one long call would. (It restarted at each call before, so a 0.73 s period stepped by 1 s
+        heartbeats read once a second at the same phase and aliased with the table's strokes.) The clock is
+        set to each tick's time before the read, so the devices see exactly that instant.
         """
         clock = self.clock
         if not isinstance(clock, ManualClock):
@@ -448,8 +454,10 @@ class Acquisition:
         if self._state == "stopped":
             raise RuntimeError("this acquisition was stopped")
         self._state = "stepping"
-        origin = clock.now()
-        counts = dict.fromkeys(range(len(self.samplers)), 1)
+        if self._step_origin_s is None:
+            self._step_origin_s = clock.now()
+            self._step_counts = dict.fromkeys(range(len(self.samplers)), 1)
+        origin, counts = self._step_origin_s, self._step_counts
         while True:
             times = {i: round(origin + n * self.samplers[i].period_s, 9) for i, n in counts.items()}
             i = min(times, key=lambda k: times[k])

@@ -216,7 +216,9 @@ def test_devices_dropping_and_saturated_values_hold_the_offsets_without_a_jump(t
                    for m in lines), lines
         assert re.match(r'window \d+ insufficient: coverage 0 % \(0/\d+ samples\), device adc: device "adc" '
                         r"\(Modbus TCP\): no valid answer to fc4 0..8 within 0.5 s", lines[0]), lines[0]
-        assert any(re.match(r"window \d+ rejected: coverage 100 % .*channel spindle_i1 \(factor spindle_i1_sq\) "
+        # every sample taken; 99-100 %: the board is read every 0.73 s, and a window's last 0-0.73 s lie after
+        # its last sample
+        assert any(re.match(r"window \d+ rejected: coverage (99|100) % .*channel spindle_i1 \(factor spindle_i1_sq\) "
                             r"saturated in \d+ samples", m) for m in caplog.messages)
         writes, events = audited(data)
         for a, b in itertools.pairwise(writes):
@@ -313,7 +315,9 @@ def test_an_opcua_client_sees_analog_items_and_the_status_go_good_held_bad_throu
         assert v_good["Factors.spindle_speed"][4] == pytest.approx(good.factors["spindle_speed"])
         # held: the last good window's factors (the board has been silent since minute 62), and the estimate on them
         assert v_held["Factors.spindle_speed"][4] == pytest.approx(held.estimate.held_factors["spindle_speed"])
-        assert held.estimate.held_factors["spindle_speed"] == pytest.approx(good.factors["spindle_speed"])
+        # the good window seen may be an earlier one than the last before the drop: 82 reads a window at 0.73 s
+        # scatter its mean speed by a few 0.01 rpm
+        assert held.estimate.held_factors["spindle_speed"] == pytest.approx(good.factors["spindle_speed"], abs=0.5)
         assert v_held["Estimate.z_um"][4] == pytest.approx(held.estimate.estimate_um["z"])
         assert all(s[4] is None for k, s in v_bad.items() if not k.startswith("Compensation"))  # no number when Bad
         assert v_back["Estimate.z_um"][4] == pytest.approx(back.estimate.estimate_um["z"])

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import math
 import threading
+import time
 from dataclasses import replace
 from datetime import UTC, datetime
 from types import MappingProxyType
@@ -18,6 +19,7 @@ from types import MappingProxyType
 import pytest
 from tests_paths import PROFILES
 
+from gateway.clock import ManualClock
 from gateway.live.audit import Alarm, WriteEntry
 from gateway.live.compensation import WriterStatus
 from gateway.live.health import GapStatus, Health
@@ -334,6 +336,30 @@ def test_status_follows_the_window_good_held_bad_stale_and_times_are_the_windows
     wide = estimate(usable=False, reason="95 % band z +-3.28 um wider than probes.band_limit_um = 1 um")
     v = served(srv, replace(HEALTH, estimate=wide), KEYS)
     assert v["Estimate.z_um"] == ("Good", -12.5, t42)
+
+
+def test_values_turn_bad_out_of_service_on_the_servers_own_clock_when_no_snapshot_comes(server):
+    """The acquisition stopped: no window closes, no snapshot arrives; the server's one-second beat sees it."""
+    srv, _ = server
+    clock = ManualClock(HEALTH.clock_s)
+    srv.clock = clock  # what LiveGateway passes as OpcUaServer(clock=...)
+    try:
+        assert served(srv, HEALTH, KEYS)["Estimate.z_um"][0] == "Good"
+        clock.set(43 * 60.0 + 151.0)  # stale_after_s is 150 s: past it, and nothing published
+
+        async def status(client, ns):
+            node = client.get_node(f"ns={ns};s=Estimate.z_um")
+            return (await node.read_data_value(raise_on_bad_status=False)).StatusCode.name
+
+        for _ in range(50):  # the beat is 1 s of wall time
+            code = asyncio.run(client_session(srv.endpoint, status))
+            if code != "Good":
+                break
+            time.sleep(0.1)
+        assert code == "BadOutOfService"
+    finally:
+        srv.clock = None
+        served(srv, HEALTH, KEYS)  # the module's server as the other tests expect it
 
 
 def test_a_nan_is_never_served_as_good(server):

@@ -83,6 +83,34 @@ def test_coarse_sampling_shows_its_bias_and_the_record_says_so(machine_adc, tmp_
     assert max(abs(e) for e in errors.values()) > 0.005  # coarser than the 0.5 % reached at 2 ms
 
 
+def test_stepping_in_chunks_samples_the_grid_one_call_would(tmp_path):
+    """The live gateway steps a ManualClock a heartbeat (1 s) at a time: the 0.73 s grid must run on across calls.
+
+    It restarted at each call once, so the board was read once a second at one phase of the strokes: 60
+    samples a window instead of 82, and per-window feed currents that alternated (the demo's aliasing).
+    """
+    def window(steps: list[float]):
+        clock = ManualClock(WINDOW * MINUTE)
+        machine = LiveMachine("spindle-feeds", clock=clock)
+        with serve(machine, clock, DeviceSetConfig(adc_rtu=None, can=None, dcon=None, cnc=None)) as devices:
+            profile = live_profile(devices, tmp_path, device_keys={"period_s": 0.73})
+            records = []
+            acq = Acquisition(profile, clock=clock, sinks=[records.append])
+            try:
+                for t in steps:
+                    acq.run_stepped(WINDOW * MINUTE + t)
+            finally:
+                acq.stop()
+        assert [r.index for r in records] == [WINDOW]
+        return profile, records[0]
+
+    profile, chunked = window([float(k) for k in range(1, 61)])
+    _, whole = window([60.0])
+    assert chunked.samples_taken == whole.samples_taken == 82  # 60 s / 0.73 s
+    for f in profile.factors:
+        assert chunked.factors[f.name] == pytest.approx(whole.factors[f.name], rel=1e-9, abs=1e-12), f.name
+
+
 def test_a_missed_tick_does_not_bias_the_mean():
     """x = t sampled every 1 ms over (0, 1]; the second half loses every other tick."""
     w = DeviceWindow(device="d", channels=("x",), index=0, window_s=1.0, tick_s=0.001, opened_s=0.0)

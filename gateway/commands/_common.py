@@ -7,7 +7,7 @@ import re
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from gateway.errors import GatewayError, ModelError
+from gateway.errors import ModelError, UsageError
 from gateway.model import ThermalModel, load_model
 from gateway.profile import Profile
 from gateway.recording import Recording, read_for_profile
@@ -94,5 +94,6 @@ def progress_bar(total: int | None, desc: str) -> tuple[Callable[[str], None], C
 
 
 def fail_if_exists(path: Path, force: bool) -> None:
+    """Refuse to replace ``path`` unless ``--force`` (checked before the work, so none is lost)."""
     if path.exists() and not force:
-        raise GatewayError(f"{path} exists: pass --force to overwrite it")
+        raise UsageError(f"{path} exists: pass --force to replace it, or -o another file")

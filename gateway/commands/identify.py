@@ -6,13 +6,13 @@ import argparse
 from pathlib import Path
 
 from gateway import BUNDLED
-from gateway.commands._common import add_recording_options, positive_int, progress_bar, read_recordings
+from gateway.commands._common import add_recording_options, fail_if_exists, positive_int, progress_bar, read_recordings
 from gateway.errors import UsageError
 from gateway.identify import identify
 from gateway.identify.api import identification_summary
 from gateway.identify.joint import CANDIDATES
 from gateway.model import save_model
-from gateway.profile import load_profile
+from gateway.profile import Profile, load_profile
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -25,6 +25,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--profile", required=True, metavar="PROFILE", help="machine profile (TOML)")
     p.add_argument("experiments", nargs="+", metavar="EXPERIMENT", help="experiment recordings (CSV)")
     p.add_argument("-o", "--output", metavar="MODEL", help="model file to write (default: the profile's)")
+    p.add_argument("--force", action="store_true",
+                   help="replace MODEL if it exists (a gateway running with it picks the new one up at its restart)")
     p.add_argument("--method", choices=("joint", "paper"), default="joint",
                    help="joint (default): all paths of an axis at once, with structure choice and uncertainties; "
                         "paper: the paper's V^-1 separation and steepest descent, as a reference")
@@ -58,9 +60,23 @@ def _structures(text: str) -> tuple[str, ...]:
     return structures
 
 
+def _output(args: argparse.Namespace, profile: Profile) -> Path:
+    """Where the model goes: -o, else the profile's model file (for a bundled profile: its name, here)."""
+    out = Path(args.output) if args.output else profile.model_path
+    if not args.output and _inside(out, BUNDLED):
+        # a bundled profile's model lives in the installed package: never overwrite it (a root-owned venv
+        # would refuse, an editable one would change the repository's reference model)
+        out = Path.cwd() / out.name
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     """Identify, write the model, print the report."""
     profile = load_profile(args.profile)
+    out = _output(args, profile)
+    # checked before the work: identification takes minutes, and the model a gateway runs is not replaced
+    # by accident (a second identify with the profile's default path)
+    fail_if_exists(out, args.force)
     structures = args.structures
     recs = read_recordings(args.experiments, profile, period_s=args.period_s, require_displacement=True)
     # a production run may carry its displacement as probe points only (probe_* columns): checked in identify
@@ -78,12 +94,6 @@ def run(args: argparse.Namespace) -> int:
                           progress=lambda m: None if "pruning" in m else update(m))
     finally:
         close()
-    out = Path(args.output) if args.output else profile.model_path
-    bundled = not args.output and _inside(out, BUNDLED)
-    if bundled:
-        # a bundled profile's model lives in the installed package: never overwrite it (a root-owned venv
-        # would refuse, an editable one would change the repository's reference model)
-        out = Path.cwd() / out.name
     save_model(result.model, out)
     print(f"identified {len(result.model.axes)} axes x {len(result.model.factors)} factors from "
           f"{len(recs)} experiment(s)" + (f" and {len(prod)} production run(s)" if prod else "")
@@ -101,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
         plot_estimates(ests, args.plot, title=f"{profile.name}: identification fit ({args.method})")
         print(f"wrote {args.plot}")
     print(f"wrote {out}")
-    if bundled:
+    if not args.output and _inside(profile.model_path, BUNDLED):
         print(f"note: {profile.name} is a profile bundled with cncgw: its model was written here, not into the "
               f"installed package; pass it on with --model {out}")
     return 0

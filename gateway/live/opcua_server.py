@@ -44,11 +44,12 @@ import logging
 import math
 import threading
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from types import MappingProxyType
 from typing import Any
 
+from gateway.clock import Clock
 from gateway.errors import GatewayError
 from gateway.live.health import Health
 from gateway.model import ThermalModel
@@ -173,11 +174,14 @@ class OpcUaServer:
     """See the module docstring. ``start()`` returns once the server listens; ``stop()`` is idempotent."""
 
     def __init__(self, settings: OpcUa, *, profile: Profile, model: ThermalModel,
-                 on_hold: Callable[[bool], None] | None = None) -> None:
+                 on_hold: Callable[[bool], None] | None = None, clock: Clock | None = None) -> None:
         self.settings = settings
         self.profile = profile
         self.model = model
         self.on_hold = on_hold
+        #: with a clock, the last snapshot's staleness is re-checked every second between snapshots: when the
+        #: acquisition stops no window closes and no snapshot comes, yet the values must turn BadOutOfService
+        self.clock = clock
         self.port: int | None = None
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -410,6 +414,7 @@ class OpcUaServer:
     async def _publisher(self) -> None:
         assert self._queue is not None
         hold = False
+        shown: Health | None = None
         while True:
             try:
                 async with asyncio.timeout(1.0):
@@ -424,6 +429,15 @@ class OpcUaServer:
             item = items[-1]
             if item is not ...:
                 await self._apply(item)
+                shown = item
+            elif shown is not None and self.clock is not None:
+                now = replace(shown, clock_s=self.clock.now())
+                if now.stale != shown.stale:  # no snapshot for stale_after_s: served Bad, not the last Good
+                    log.warning("OPC UA: no window closed for %.0f s of clock time (stale_after_s %.0f s): "
+                                "values served as %s", now.clock_s - now.last_window.end_s,  # type: ignore[union-attr]
+                                now.stale_after_s, STALE)
+                    await self._apply(now)
+                    shown = now
             if self.on_hold is not None and self.settings.writable:
                 value = bool(await self._nodes["Compensation.HoldRequest"].read_value())
                 if value != hold:

@@ -185,7 +185,7 @@ class LiveGateway:
             from gateway.live.opcua_server import OpcUaServer
 
             self.opcua = OpcUaServer(p.opcua, profile=p, model=self.model,
-                                     on_hold=self.writer.request_hold if p.opcua.writable else None)
+                                     on_hold=self.writer.request_hold if p.opcua.writable else None, clock=self.clock)
             self.opcua.start()
 
         if p.mqtt.enabled:
