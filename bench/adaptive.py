@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/adaptive.py [--quick] [--days 4] [--seeds 1,2] [--variants 0,1,2]
                                        [--effects room,slow,coolant] [--intervals 1,2,4] [--plot DIR]
-                                       [--cache DIR] [--json FILE] [--extrapolation-gain-sd K]
+                                       [--cache DIR] [--json FILE] [--extrapolation-gain-sd K] [--diagonal]
 
 Per plant variant (``[plant] variant = N``, simulators/machine/variants.py) the model is identified from the
 nine bundled identification scenarios on that plant (``gateway.identify.identify``, the joint method, as
@@ -83,11 +83,12 @@ COVER_LO, COVER_HI = 0.90, 0.98
 
 
 # ------------------------------------------------------------------------------------------- the plant ---
-def _cached(cache: Path, key: str, make, *, text: bool = False):
-    """``make()`` once per ``key`` (and simulator sources) on disk: a model's text or a dict of arrays."""
+def _cached(cache: Path, key: str, make, *, text: bool = False, sources: tuple[str, ...] = ("simulators/machine",)):
+    """``make()`` once per ``key`` (and the sources it depends on) on disk: a model's text or a dict of arrays."""
     h = hashlib.sha256()
-    for p in sorted((ROOT / "simulators" / "machine").glob("*.py")):
-        h.update(p.read_bytes())
+    for d in sources:
+        for p in sorted((ROOT / d).glob("*.py")):
+            h.update(p.read_bytes())
     h.update(key.encode())
     path = cache / (h.hexdigest()[:20] + (".toml" if text else ".npz"))
     if path.is_file():
@@ -120,7 +121,10 @@ def identified_model(variant: int, cache: Path) -> ThermalModel:
         model = identify(recs, factors=base.factors, axes=AXES, units=dict(base.units), machine="sim-vmc").model
         return model_to_toml(model)
 
-    return load_model(f"variant-{variant}.model.toml", text=_cached(cache, f"model/{variant}", make, text=True))
+    # identified again when identification or the model file changes (e.g. the gains' correlation stored)
+    text = _cached(cache, f"model/{variant}", make, text=True,
+                   sources=("simulators/machine", "gateway/identify", "gateway/model"))
+    return load_model(f"variant-{variant}.model.toml", text=text)
 
 
 def _jobs(rng: np.random.Generator, minutes: float, prefix: str) -> list[tuple[str, int, dict]]:
@@ -418,6 +422,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--extrapolation-gain-sd", type=float, default=DriftSettings().extrapolation_gain_sd,
                     help="relative gain sd per unit of log distance beyond the model's coverage (0: the band "
                          "does not widen there)")
+    ap.add_argument("--diagonal", action="store_true",
+                    help="the gains' prior without the model's [gain_correlation] (each path's gain error "
+                         "independent, as before it was stored)")
     ap.add_argument("--plot", type=Path, default=None, help="write a figure per case and interval here")
     ap.add_argument("--json", type=Path, default=None, help="write every figure as JSON here")
     ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "cncgw-bench" / "adaptive")
@@ -432,7 +439,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.plot:
         args.plot.mkdir(parents=True, exist_ok=True)
 
-    settings = DriftSettings(extrapolation_gain_sd=args.extrapolation_gain_sd)
+    settings = DriftSettings(extrapolation_gain_sd=args.extrapolation_gain_sd, gain_correlation=not args.diagonal)
     t0 = time.perf_counter()
     models = {v: identified_model(v, args.cache) for v in args.variants}
     print(f"models of plant variants {args.variants} identified from the nine scenarios "

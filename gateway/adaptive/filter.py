@@ -9,9 +9,12 @@ State space, per axis (the axes are filtered independently: a probe's axes are m
   :meth:`gateway.model.DiscreteModel.contributions` in batch). These states are driven by known inputs
   and carry no noise, so they stay outside the filter's covariance and enter through the measurement row.
 - ``g_p``: the path's relative gain error, a slowly varying parameter. Its prior is the identification's
-  own standard deviation (``PathTF.sd["gain"] / |gain|``); it relaxes back to 0 with ``gain_memory_h``
-  (a first-order Gauss-Markov process whose stationary variance is that prior), so without probes the
-  estimate returns to the identified model and its band to the identification's.
+  own covariance: each path's standard deviation (``PathTF.sd["gain"] / |gain|``) and, where the model file
+  stores it (``[gain_correlation.<axis>]``, :mod:`gateway.model.correlation`), the correlation of the paths'
+  errors, so a combination of co-varying paths the experiments fixed is tight and one they did not is wide
+  (without it: independent, the diagonal). It relaxes back to 0 with ``gain_memory_h`` (a first-order
+  Gauss-Markov process whose stationary covariance is that prior), so without probes the estimate returns to
+  the identified model and its band to the identification's.
 - ``d``: the disturbance the model does not know (the room, a slow part, coolant): an offset whose rate
   ``r`` is itself a Gauss-Markov process (``rate_sd_um_per_h``, ``rate_tau_h``: an integrated random walk
   whose slope fades), plus a white random walk of the offset (``walk_um_per_sqrt_h``); the offset relaxes
@@ -67,6 +70,9 @@ class DriftSettings:
     gain_memory_h: float = 48.0
     #: relative gain sd for a path whose model file has none (a hand-written or the paper's model)
     gain_sd_default: float = 0.1
+    #: the gains' prior covariance from the model's [gain_correlation] (False, or a file without it: every
+    #: path's gain error independent, the diagonal)
+    gain_correlation: bool = True
     gate_sigma: float = 3.0
     #: the model's motion (sum over paths of |change|, um/h) at which the disturbance's noise doubles
     activity_ref_um_per_h: float = 3.0
@@ -108,6 +114,23 @@ def gain_sd(model: ThermalModel, default: float) -> np.ndarray:
             sd = p.sd.get("gain")
             out[i, j] = default if sd is None or not math.isfinite(sd) else min(sd / abs(p.gain), 1.0)
     return out
+
+
+def gain_correlation(model: ThermalModel) -> np.ndarray:
+    """Per axis the correlation of the paths' gain errors (axes, inputs, inputs); the identity where none is stored.
+
+    Made positive semidefinite (negative eigenvalues, from rounding in a file edited by hand, set to 0) with a
+    unit diagonal, so every member's prior stays a covariance.
+    """
+    out = []
+    for a in model.axes:
+        c = model.gain_correlation_matrix(a)
+        w, v = np.linalg.eigh((c + c.T) / 2.0)
+        c = (v * np.clip(w, 0.0, None)) @ v.T
+        d = np.sqrt(np.clip(np.diag(c), 1e-300, None))
+        c = c / np.outer(d, d)
+        out.append((c + c.T) / 2.0)
+    return np.array(out)
 
 
 def _tails(mean: np.ndarray, sd: np.ndarray, w: np.ndarray, mu: np.ndarray, h: np.ndarray) -> np.ndarray:
@@ -220,6 +243,8 @@ class AdaptiveEstimator:
         self.n_in = n_in
         n = n_in + 2
         self.gain_sd = gain_sd(model, s.gain_sd_default) if s.gains else np.zeros((n_a, n_in))
+        self.gain_corr = gain_correlation(model) if s.gain_correlation else np.broadcast_to(np.eye(n_in),
+                                                                                            (n_a, n_in, n_in))
         pairs = [(a, b) for a in s.scales for b in (s.gain_scales if s.gains else (1.0,))]
         scales = np.array([a for a, _ in pairs])
         g_scales = np.array([b for _, b in pairs])
@@ -236,9 +261,11 @@ class AdaptiveEstimator:
         P0 = np.zeros((n_a, n_m, n, n))
         prior = np.zeros((n_a, n_m, n, n))
         for i in range(n_a):
-            var_g = np.minimum(self.gain_sd[i][:, None] ** 2 * g_scales[None, :], 1.0)  # (inputs, members)
-            self.Qg[i, :, np.arange(n_in), np.arange(n_in)] = var_g * (1.0 - a_g * a_g)
-            P0[i, :, np.arange(n_in), np.arange(n_in)] = var_g
+            # the gains' prior: each path's relative sd (at most 1) and, where identification stored it, how
+            # their errors go together, so a combination the experiments fixed (co-varying factors) is tight
+            sd_g = np.minimum(self.gain_sd[i][None, :] * np.sqrt(g_scales)[:, None], 1.0)  # (members, inputs)
+            P0[i, :, :n_in, :n_in] = sd_g[:, :, None] * self.gain_corr[i][None] * sd_g[:, None, :]
+            self.Qg[i, :, :n_in, :n_in] = P0[i, :, :n_in, :n_in] * (1.0 - a_g * a_g)
             self.Qd[i, :, n_in:, n_in:] = scales[:, None, None] * q_dr
             prior[i, :, n_in:, n_in:] = scales[:, None, None] * p_dr
         self.x = np.zeros((n_a, n_m, n))

@@ -183,7 +183,15 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
             terms[a].append(Term(trial=t, axis=a, setting=setting, gains=np.asarray(gs), contribution=contrib))
         prediction[i] = frozen[i] + sum((x * c for x, c in zip(g, cols, strict=True)), np.zeros(stack.n))
         fixed[a] = frozen[i]
-    base = model.with_paths(paths, info={**model.info, "reidentified": {
+    # the re-identified paths' gain errors go together as their fit says (an axis without one: independent)
+    correlation = dict(model.gain_correlation)
+    for a, sel in selections.items():
+        corr = sel.chosen.gain_correlation(factors)
+        if corr is None:
+            correlation.pop(a, None)
+        else:
+            correlation[a] = corr
+    base = model.with_paths(paths, gain_correlation=correlation, info={**model.info, "reidentified": {
         "recordings": list(stack.names), "structure": {a: s.chosen.structures[0] for a, s in selections.items()},
         "pruned": {a: list(s.pruned) for a, s in selections.items()}}})
     extended = extend_model(base, terms)

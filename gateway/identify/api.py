@@ -17,6 +17,7 @@ from gateway.identify.common import ExperimentSet
 from gateway.identify.joint import CANDIDATES, AxisProblem, AxisSelection, select_axis
 from gateway.identify.paper import active_factors, describe_groups, identify_paper
 from gateway.identify.shrink import AxisShrinkage, shrink_axis
+from gateway.model.correlation import GainCorrelation
 from gateway.model.coverage import coverage_of
 from gateway.model.envelope import envelope_of
 from gateway.model.model import ThermalModel, model_problems
@@ -162,6 +163,7 @@ def _identify(
     selections: list[AxisSelection] = []
     shrinkage: list[AxisShrinkage] = []
     paths = []
+    correlation: dict[str, GainCorrelation] = {}
     info: dict[str, object] = {
         "method": method, "experiments": list(es.names[: len(recordings)]),
         "experiment_fingerprints": [r.fingerprint(factors) for r in recordings],
@@ -186,7 +188,12 @@ def _identify(
                 sel, shr = _shrink_selection(es, i, sel)
                 shrinkage.append(shr)
             selections.append(sel)
-            paths += (shr.fit if shr is not None else sel.chosen).paths(factors)
+            axis_fit = shr.fit if shr is not None else sel.chosen
+            paths += axis_fit.paths(factors)
+            # how the gains' errors go together (co-varying factors): the live band's prior (gateway.adaptive)
+            corr = axis_fit.gain_correlation(factors)
+            if corr is not None:
+                correlation[axes[i]] = corr
             report += _axis_report(sel)
             info[f"axis_{axes[i]}"] = {
                 "structure": _structure_name(sel.chosen.structures), "rms_um": sel.chosen.rms,
@@ -204,7 +211,8 @@ def _identify(
     # the deviations the experiments covered: beyond them the model extrapolates (estimate warns)
     info["deviation_range"] = {f: [float(es.du[j].min()), float(es.du[j].max())] for j, f in enumerate(factors)}
     model = ThermalModel(axes=tuple(axes), factors=tuple(factors), units=dict(units or {}), reference=reference,
-                         paths={(p.axis, p.factor): p for p in paths}, machine=machine, info=info)
+                         paths={(p.axis, p.factor): p for p in paths}, machine=machine, info=info,
+                         gain_correlation=correlation)
     # what these experiments support: the live gateway holds the offsets beyond it (gateway.live.plausibility)
     what = f"{len(recordings)} experiments" + (f" and {len(production)} production runs" if production else "")
     sampled = [p for p in preps[len(recordings):] if p.sparse]
@@ -337,8 +345,8 @@ def _shrink_selection(es: ExperimentSet, i: int, sel: AxisSelection) -> tuple[Ax
             # held-out errors of two good models differ by noise: un-pruning needs a clear gain
             if other.loeo_sse[other.kappa] < (1.0 - UNPRUNE_GAIN) * shr.loeo_sse[shr.kappa]:
                 if not whole.sd:
-                    whole.sd = problem.uncertainties(whole, whole.n / sel.n_eff)
-                other.fit.sd = whole.sd
+                    problem.attach_uncertainties(whole, whole.n / sel.n_eff)
+                other.fit.sd, other.fit.gain_cov = whole.sd, whole.gain_cov
                 sel = replace(sel, chosen=whole, pruned=(), unpruned=sel.pruned)
                 shr = other
     return sel, shr

@@ -38,6 +38,7 @@ from gateway.identify.common import (
     theta_from_time_constants,
     unit_responses,
 )
+from gateway.model.correlation import GainCorrelation, from_covariance
 from gateway.model.model import PathTF
 
 CANDIDATES = ("first_order", "second_order", "two_modes")
@@ -62,6 +63,8 @@ class AxisFit:
     converged: bool = True  # False when the optimizer stopped at its evaluation budget
     residuals: list[np.ndarray] = field(default_factory=list)  # per experiment, NaN where not fitted
     sd: list[dict[str, float]] = field(default_factory=list)
+    #: covariance of the paths' static gains (inputs x inputs, 0 for a zero path), from the same Jacobian as sd
+    gain_cov: np.ndarray | None = None
     bic: float = math.nan
 
     @property
@@ -72,6 +75,16 @@ class AxisFit:
     @property
     def rms(self) -> float:
         return math.sqrt(self.rss / max(self.n, 1))
+
+    def gain_correlation(self, factors: Sequence[str]) -> GainCorrelation | None:
+        """The correlation of the estimated (non-zero) paths' gains, for the model file; None without sds."""
+        if self.gain_cov is None:
+            return None
+        cov = self.gain_cov.copy()
+        for j, s in enumerate(self.structures):
+            if s == "zero":
+                cov[j, :] = cov[:, j] = 0.0
+        return from_covariance(list(factors), cov)
 
     def paths(self, factors: Sequence[str]) -> list[PathTF]:
         out = []
@@ -344,6 +357,19 @@ class AxisProblem:
     # -- uncertainty -------------------------------------------------------------------------------------
     def uncertainties(self, fit: AxisFit, inflation: float) -> list[dict[str, float]]:
         """Standard deviations of gains and time constants from the full Jacobian at the optimum."""
+        return self.covariances(fit, inflation)[0]
+
+    def attach_uncertainties(self, fit: AxisFit, inflation: float) -> None:
+        """Set ``fit.sd`` and ``fit.gain_cov`` (:meth:`covariances`)."""
+        fit.sd, fit.gain_cov = self.covariances(fit, inflation)
+
+    def covariances(self, fit: AxisFit, inflation: float) -> tuple[list[dict[str, float]], np.ndarray]:
+        """Per path the standard deviations (:meth:`uncertainties`), and the covariance of the paths' static gains.
+
+        The static gain of a path is the sum of its terms' gains, so the covariance of two paths' gains is the
+        sum of their terms' block of the full covariance (time constants free: their uncertainty is in it).
+        Co-varying factors show here: the experiments fix a combination of their gains better than each one.
+        """
         structures = fit.structures
         sizes = [n_nonlinear(s) for s in structures]
         x = np.concatenate([np.asarray(t, float) for t in fit.thetas]) if fit.thetas else np.zeros(0)
@@ -370,6 +396,7 @@ class AxisProblem:
         var = np.clip(np.diag(cov), 0, None)
         out: list[dict[str, float]] = []
         qn, ql = 0, x.size
+        blocks: list[slice | None] = []
         for j, s in enumerate(structures):
             d: dict[str, float] = {}
             th = fit.thetas[j]
@@ -384,10 +411,16 @@ class AxisProblem:
                 d[f"term{t + 1}.gain"] = math.sqrt(var[ql + t])
             if m:
                 d["gain"] = math.sqrt(max(float(np.sum(cov[ql: ql + m, ql: ql + m])), 0.0))
+            blocks.append(slice(ql, ql + m) if m else None)
             qn += n_nonlinear(s)
             ql += m
             out.append(d)
-        return out
+        gain_cov = np.zeros((len(structures), len(structures)))
+        for j, bj in enumerate(blocks):
+            for k, bk in enumerate(blocks):
+                if bj is not None and bk is not None:
+                    gain_cov[j, k] = float(np.sum(cov[bj, bk]))
+        return out, (gain_cov + gain_cov.T) / 2.0
 
 
 # ---------------------------------------------------------------------------------------- starting values --
@@ -490,7 +523,7 @@ def select_axis(es: ExperimentSet, axis_index: int, *, active: Sequence[bool],
         fit.bic = bic(fit, n_eff)
     chosen = min(tried.values(), key=lambda f: f.bic)
     inflation = richest.n / n_eff
-    chosen.sd = problem.uncertainties(chosen, inflation)
+    problem.attach_uncertainties(chosen, inflation)
     pruned: tuple[str, ...] = ()
     if prune:
         weak = [j for j, s in enumerate(chosen.structures)
@@ -504,7 +537,7 @@ def select_axis(es: ExperimentSet, axis_index: int, *, active: Sequence[bool],
             smaller.nfev += 0
             smaller.bic = bic(smaller, n_eff)
             if smaller.bic <= chosen.bic:
-                smaller.sd = problem.uncertainties(smaller, inflation)
+                problem.attach_uncertainties(smaller, inflation)
                 pruned = tuple(es.factors[j] for j in weak)
                 chosen = smaller
     return AxisSelection(axis=es.axes[axis_index], chosen=chosen, tried=tried, rho=rho, n_eff=n_eff,
@@ -532,7 +565,7 @@ def refit_axis(es: ExperimentSet, axis_index: int, *, structures: Sequence[str],
     fit = problem.best_of(structures, _theta_starts(structures, starts, problem))
     if with_sd:
         n_eff, _ = effective_n(fit.residuals)
-        fit.sd = problem.uncertainties(fit, fit.n / n_eff)
+        problem.attach_uncertainties(fit, fit.n / n_eff)
     return fit
 
 

@@ -178,7 +178,7 @@ def shrink_axis(problem: AxisProblem, fit: AxisFit, *, n_eff: float, kappas: Seq
     shrunk = AxisFit(axis=fit.axis, structures=fit.structures, thetas=fit.thetas, gains=new_gains,
                      offsets=offsets, rss=float(r @ r), extra_gains=extra_gains if extra.shape[1] else fit.extra_gains,
                      n=fit.n, nfev=fit.nfev, converged=fit.converged, residuals=problem._per_experiment(r),
-                     sd=fit.sd, bic=fit.bic)
+                     sd=fit.sd, gain_cov=fit.gain_cov, bic=fit.bic)
     held_rms = {es.names[e]: math.sqrt(v / max(b - a, 1)) for (e, a, b), v in zip(blocks, held[kappa], strict=True)}
     cov = np.linalg.pinv(G, rcond=1e-12) / np.outer(scale, scale) * sigma2
     determinations = []

@@ -21,6 +21,7 @@ import tomli_w
 
 from gateway.errors import ModelError
 from gateway.model import limits
+from gateway.model.correlation import GainCorrelation, correlation_to_toml, parse_correlation
 from gateway.model.coverage import Coverage, coverage_to_toml, parse_coverage
 from gateway.model.discrete import Section
 from gateway.model.envelope import Envelope, envelope_to_toml, parse_envelope
@@ -128,6 +129,9 @@ class ThermalModel:
     envelope: Envelope | None = None
     #: the factor region the identification data covered (:mod:`gateway.model.coverage`); ``None`` in older files
     coverage: Coverage | None = None
+    #: per axis, the correlation of the identified path gains' errors (:mod:`gateway.model.correlation`); empty
+    #: in older files and from the paper's method (every gain error independent)
+    gain_correlation: Mapping[str, GainCorrelation] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if len(set(self.axes)) != len(self.axes) or len(set(self.factors)) != len(self.factors):
@@ -150,6 +154,16 @@ class ThermalModel:
         object.__setattr__(self, "reference",
                            MappingProxyType({f: float(self.reference.get(f, 0.0)) for f in self.factors}))
         object.__setattr__(self, "info", MappingProxyType(dict(self.info)))
+        for a, c in self.gain_correlation.items():
+            unknown = [n for n in c.inputs if n not in self.input_names]
+            if a not in self.axes or unknown:
+                raise ValueError(f"gain_correlation {a}: not an axis of the model or inputs unknown: {unknown}")
+        object.__setattr__(self, "gain_correlation", MappingProxyType(dict(self.gain_correlation)))
+
+    def gain_correlation_matrix(self, axis: str) -> np.ndarray:
+        """The correlation of ``axis``'s path gains over :attr:`input_names` (the identity where none is stored)."""
+        c = self.gain_correlation.get(axis)
+        return c.full(self.input_names) if c is not None else np.eye(len(self.input_names))
 
     @property
     def input_names(self) -> tuple[str, ...]:
@@ -184,7 +198,8 @@ class ThermalModel:
                 == {k: _path_key(v) for k, v in other.paths.items()}
                 and self.machine == other.machine and _plain(self.info) == _plain(other.info)
                 and self.inputs == other.inputs and self.envelope == other.envelope
-                and self.coverage == other.coverage)
+                and self.coverage == other.coverage
+                and dict(self.gain_correlation) == dict(other.gain_correlation))
 
     __hash__ = None  # type: ignore[assignment]
 
@@ -359,6 +374,8 @@ def model_to_toml(model: ThermalModel) -> str:
         doc["envelope"] = envelope_to_toml(model.envelope)
     if model.coverage is not None:
         doc["coverage"] = coverage_to_toml(model.coverage)
+    if model.gain_correlation:
+        doc["gain_correlation"] = correlation_to_toml(dict(model.gain_correlation))
     paths = []
     for a in model.axes:
         for f in model.input_names:
@@ -444,6 +461,8 @@ def load_model(path: str | Path, *, text: str | None = None) -> ThermalModel:
     coverage = parse_coverage(cov_t, factors) if cov_t is not None else None
     info_t = root.table("info")
     info = _parse_info(info_t, factors) if info_t is not None else {}
+    corr_t = root.table("gain_correlation", expected="a table of [gain_correlation.<axis>] tables")
+    gain_correlation = parse_correlation(corr_t, axes, names) if corr_t is not None else {}
 
     paths: dict[tuple[str, str], PathTF] = {}
     raw = root.raw("path", default=[], expected="an array of [[path]] tables")
@@ -464,7 +483,7 @@ def load_model(path: str | Path, *, text: str | None = None) -> ThermalModel:
     doc.raise_problems()
     return ThermalModel(axes=axes, factors=factors, units=units, reference=reference, paths=paths,
                         machine=machine, info=info, inputs=tuple(inputs), envelope=envelope,
-                        coverage=coverage)
+                        coverage=coverage, gain_correlation=gain_correlation)
 
 
 def _name_table(t: Table | None, factors: Sequence[str], get: Callable[[Table, str], Any]) -> dict[str, Any]:
