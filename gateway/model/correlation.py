@@ -75,7 +75,8 @@ def from_covariance(names: Sequence[str], cov: np.ndarray) -> GainCorrelation | 
     sd = np.sqrt(np.diag(sub))
     r = np.clip(sub / np.outer(sd, sd), -1.0, 1.0)
     np.fill_diagonal(r, 1.0)
-    return GainCorrelation(inputs=tuple(names[i] for i in keep), matrix=tuple(tuple(float(v) for v in row) for row in r))
+    return GainCorrelation(inputs=tuple(names[i] for i in keep),
+                           matrix=tuple(tuple(float(v) for v in row) for row in r))
 
 
 def matrix_problem(matrix: Any, n: int) -> str:
@@ -99,8 +100,8 @@ def matrix_problem(matrix: Any, n: int) -> str:
     asym = np.argwhere(np.abs(m - m.T) > 1e-9)
     if asym.size:
         i, j = asym[0]
-        return (f"row {i + 1}, column {j + 1} is {float(m[i, j])!r} but row {j + 1}, column {i + 1} is {float(m[j, i])!r}: "
-                f"expected {EXPECTED}")
+        return (f"row {i + 1}, column {j + 1} is {float(m[i, j])!r} but row {j + 1}, column {i + 1} is "
+                f"{float(m[j, i])!r}: expected {EXPECTED}")
     low = float(np.linalg.eigvalsh((m + m.T) / 2.0).min())
     if low < -TOLERANCE:
         return f"its smallest eigenvalue is {low:.3g}: expected {EXPECTED}"
