@@ -75,16 +75,12 @@ BASE = model_to_toml(ThermalModel(axes=("z",), factors=F, units={}, reference={}
 
 
 @pytest.mark.parametrize(("table", "message"), [
-    ('inputs = ["speed", "i_sq"]\nmatrix = [[1.0, -0.9], [-0.8, 1.0]]',
-     "gain_correlation.z.matrix: row 1, column 2 is -0.9 but row 2, column 1 is -0.8"),
-    ('inputs = ["speed", "i_sq"]\nmatrix = [[1.0, -1.5], [-1.5, 1.0]]',
-     "gain_correlation.z.matrix: row 1, column 2: -1.5: expected a correlation in [-1, 1]"),
-    ('inputs = ["speed", "i_sq"]\nmatrix = [[1.0, 0.5]]',
-     "gain_correlation.z.matrix: expected 2 rows of 2 numbers (one per input named), got 1 rows of 2 entries"),
-    ('inputs = ["speed", "i_sq"]\nmatrix = [[2.0, 0.0], [0.0, 1.0]]',
-     "gain_correlation.z.matrix: row 1, column 1: 2.0: expected 1 on the diagonal"),
-    ('inputs = ["speed", "rpm"]\nmatrix = [[1.0, 0.0], [0.0, 1.0]]',
-     'gain_correlation.z.inputs: "rpm" is not allowed'),
+    ('"speed/i_sq" = -1.5', 'gain_correlation.z.speed/i_sq: expected a correlation in [-1, 1], got -1.5'),
+    ('"speed/rpm" = -0.5', 'gain_correlation.z.speed/rpm: expected a key "a/b" naming two different inputs of '
+                           "this model (inputs: speed, i_sq)"),
+    ('"speed/speed" = 0.5', 'gain_correlation.z.speed/speed: expected a key "a/b" naming two different inputs'),
+    ('"speed/i_sq" = -0.5\n"i_sq/speed" = -0.5', 'gain_correlation.z.i_sq/speed: the pair speed/i_sq is named twice'),
+    ('"speed/i_sq" = "high"', 'gain_correlation.z.speed/i_sq: expected a correlation in [-1, 1], got "high" (a string)'),
 ])
 def test_a_bad_correlation_table_is_refused_naming_the_key_and_value(table, message):
     text = BASE.replace("[[path]]", f"[gain_correlation.z]\n{table}\n\n[[path]]", 1)
@@ -92,6 +88,15 @@ def test_a_bad_correlation_table_is_refused_naming_the_key_and_value(table, mess
         load_model("bad.model.toml", text=text)
     assert "bad.model.toml" in str(exc.value)
     assert message in str(exc.value)
+
+
+def test_pairs_that_together_are_no_correlation_are_refused():
+    # every pair allowed on its own, the three together impossible (a = -b, b = -c, c = -a)
+    three = ThermalModel(axes=("z",), factors=("a", "b", "c"), units={}, reference={}, paths={})
+    text = model_to_toml(three) + '\n[gain_correlation.z]\n"a/b" = -0.9\n"a/c" = -0.9\n"b/c" = -0.9\n'
+    with pytest.raises(ModelError, match=r"gain_correlation\.z: the pairs together are not a correlation: its "
+                                         r"smallest eigenvalue is -0\.8: expected a correlation matrix"):
+        load_model("bad.model.toml", text=text)
 
 
 def test_a_matrix_that_is_no_covariance_is_refused():

@@ -12,6 +12,7 @@ from pathlib import Path
 from gateway.commands._common import add_recording_options, load_model_for, read_recordings
 from gateway.identify.api import identification_summary
 from gateway.model import load_model, save_model
+from gateway.model.correlation import describe_correlation
 from gateway.model.coverage import describe_coverage
 from gateway.model.envelope import describe_envelope, envelope_of
 from gateway.prepare import prepare
@@ -56,6 +57,7 @@ def run_show(args: argparse.Namespace) -> int:
     print("\n".join(identification_summary(model)))
     print("\n".join(describe_envelope(model.envelope)))
     print("\n".join(describe_coverage(model.coverage, model.units)))
+    print("\n".join(describe_correlation(dict(model.gain_correlation))))
     return 0
 
 

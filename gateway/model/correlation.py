@@ -8,15 +8,17 @@ how the errors of an axis's gains go together, so that a prediction along a comb
 determined is tight and one along a combination they did not is wide (:mod:`gateway.adaptive.filter` uses
 it as the gains' prior covariance: ``cov = diag(sd) R diag(sd)``).
 
-In the model file, one table per axis, the paths named in the matrix's order::
+In the model file, one table per axis, a key per pair of paths whose gain errors correlate (``"a/b"``, the
+inputs in the model's order)::
 
     [gain_correlation.z]
-    inputs = ["spindle_speed", "spindle_i1_sq", "z_feed"]
-    matrix = [[1.0, -0.97, 0.1], [-0.97, 1.0, -0.05], [0.1, -0.05, 1.0]]
+    "spindle_speed/spindle_i1_sq" = -0.97
+    "spindle_speed/z_feed" = 0.1
 
-A path not named (a zero path, a derived input added later by diagnosis) is taken as uncorrelated with the
-others. A file without the table (written before cncgw stored it, or by the paper's method, which fits the
-groups of factors separately) reads as before: every path's gain error independent (the identity).
+A pair not named correlates 0; a path in no pair (a zero path, a derived input added later by diagnosis) is
+uncorrelated with the others. A file without the table (written before cncgw stored it, or by the paper's
+method, which fits the groups of factors separately) reads as before: every path's gain error independent
+(the identity). The pairs of an axis together must form a correlation matrix (positive semidefinite).
 """
 
 from __future__ import annotations
@@ -34,6 +36,9 @@ if TYPE_CHECKING:
 #: what a stored matrix may miss being a correlation matrix by: floating-point sums, a file written by hand
 #: with rounded entries (symmetry and the unit diagonal to 1e-9; eigenvalues down to -TOLERANCE)
 TOLERANCE = 1e-6
+#: decimals identification writes, and below what a correlation is written as 0 (it changes no band)
+DECIMALS = 10
+NEGLIGIBLE = 1e-6
 EXPECTED = "a correlation matrix: symmetric, 1 on the diagonal, entries in [-1, 1], positive semidefinite"
 
 
@@ -73,9 +78,17 @@ def from_covariance(names: Sequence[str], cov: np.ndarray) -> GainCorrelation | 
     sub = cov[np.ix_(keep, keep)]
     sub = (sub + sub.T) / 2.0
     sd = np.sqrt(np.diag(sub))
-    r = np.clip(sub / np.outer(sd, sd), -1.0, 1.0)
+    # 10 decimals: what separates two near-collinear paths (1 - |r| down to 1e-6 and less) is kept; the float
+    # noise of paths no experiment moved together (1e-15..1e-10) reads as the 0 it is
+    r = np.round(np.clip(sub / np.outer(sd, sd), -1.0, 1.0), DECIMALS) + 0.0
+    r[np.abs(r) < NEGLIGIBLE] = 0.0
     np.fill_diagonal(r, 1.0)
-    return GainCorrelation(inputs=tuple(names[i] for i in keep),
+    # a path in no pair is independent of the others, as a path not named: only the paired ones are kept
+    paired = [a for a in range(len(keep)) if np.any(r[a, np.arange(len(keep)) != a] != 0.0)]
+    if not paired:
+        return None
+    r = r[np.ix_(paired, paired)]
+    return GainCorrelation(inputs=tuple(names[keep[a]] for a in paired),
                            matrix=tuple(tuple(float(v) for v in row) for row in r))
 
 
@@ -116,33 +129,52 @@ def _shape(v: Any) -> str:
 
 
 def correlation_to_toml(corr: dict[str, GainCorrelation]) -> dict[str, Any]:
-    """``[gain_correlation.<axis>]`` tables (floats written exactly: a loaded model writes the same text)."""
-    return {a: {"inputs": list(c.inputs), "matrix": [[float(v) for v in row] for row in c.matrix]}
-            for a, c in corr.items()}
+    """``[gain_correlation.<axis>]`` tables: every pair whose correlation is not 0 (floats written exactly)."""
+    out: dict[str, Any] = {}
+    for a, c in corr.items():
+        pairs = {f"{c.inputs[i]}/{c.inputs[j]}": float(c.matrix[i][j]) for i in range(len(c.inputs))
+                 for j in range(i + 1, len(c.inputs)) if c.matrix[i][j] != 0.0}
+        if pairs:
+            out[a] = pairs
+    return out
 
 
 def parse_correlation(t: Table, axes: Sequence[str], names: Sequence[str]) -> dict[str, GainCorrelation]:
-    """Read ``[gain_correlation]``: per axis of the model, the inputs named and their matrix."""
+    """Read ``[gain_correlation]``: per axis of the model, ``"a/b" = r`` for pairs of its inputs."""
     out: dict[str, GainCorrelation] = {}
     for axis in t:
-        sub = t.table(axis, expected=f"a table [gain_correlation.{axis}] with inputs and matrix")
+        sub = t.table(axis, expected=f'a table [gain_correlation.{axis}] of "input/input" = correlation')
         if sub is None:
             continue
         if axis not in axes:
             t.problem(axis, f"not an axis of this model (axes: {', '.join(axes)})")
             continue
-        inputs = sub.str_list("inputs", choices=names, min_len=1)
-        raw = sub.raw("matrix", expected="an array of rows, one per input named, each an array of numbers")
+        pairs: dict[tuple[str, str], float] = {}
+        for key in sub:
+            parts = key.split("/")
+            if len(parts) != 2 or parts[0] not in names or parts[1] not in names or parts[0] == parts[1]:
+                sub.problem(key, f'expected a key "a/b" naming two different inputs of this model (inputs: '
+                                 f'{", ".join(names)})')
+                sub.raw(key)
+                continue
+            r = sub.float(key, min=-1.0, max=1.0, expected="a correlation in [-1, 1]")
+            pair = tuple(sorted(parts, key=list(names).index))
+            if pair in pairs:
+                sub.problem(key, f"the pair {pair[0]}/{pair[1]} is named twice")
+            elif r is not None:
+                pairs[pair] = r  # type: ignore[index]
         sub.done()
-        if inputs is None or raw is None:
+        used = [n for n in names if any(n in p for p in pairs)]
+        if not used:
             continue
-        problem = matrix_problem(raw, len(inputs))
-        if not problem and any(isinstance(v, bool) for row in raw for v in row):
-            problem = "expected numbers only, got true/false"
+        m = np.eye(len(used))
+        for (x, y), r in pairs.items():
+            m[used.index(x), used.index(y)] = m[used.index(y), used.index(x)] = r
+        problem = matrix_problem(m.tolist(), len(used))
         if problem:
-            sub.problem("matrix", problem)
+            t.problem(axis, f"the pairs together are not a correlation: {problem}")
             continue
-        out[axis] = GainCorrelation(inputs=tuple(inputs), matrix=tuple(tuple(float(v) for v in row) for row in raw))
+        out[axis] = GainCorrelation(inputs=tuple(used), matrix=tuple(tuple(float(v) for v in row) for row in m))
     t.done()
     return out
 
@@ -158,7 +190,7 @@ def describe_correlation(corr: dict[str, GainCorrelation], threshold: float = 0.
         pairs = [(m[i, j], c.inputs[i], c.inputs[j]) for i in range(len(c.inputs)) for j in range(i)
                  if abs(m[i, j]) >= threshold]
         pairs.sort(key=lambda p: -abs(p[0]))
-        body = ", ".join(f"{x}/{y} {r:+.3f}" for r, x, y in pairs) or "none"
+        body = ", ".join(f"{y}/{x} {r:+.3f}" for r, x, y in pairs) or "none"
         lines.append(f"  {a} ({len(c.inputs)} paths): {body}")
     return lines
 
