@@ -263,7 +263,8 @@ def variant_case(variant: int, quick: bool = False) -> dict:
     extra = []
     for k, p in enumerate(proposal.proposals):
         text = proposal_scenario(f"plan-{k + 1}", p.describe(), [(dict(s.levels), m) for s, m in p.steps],
-                                 hours=p.hours, lead_in_min=LEAD_IN_MIN, seed=9100 + k)
+                                 hours=p.hours, lead_in_min=LEAD_IN_MIN, seed=9100 + k,
+                                 cutting=[s.cutting for s, _ in p.steps])
         extra.append(simulate(parse_scenario_text(text + f"\n[plant]\nvariant = {variant}\n")).recording())
     out["proposals"] = [f"{p.name} ({p.hours:g} h)" for p in proposal.proposals]
     out["plan_hours"] = sum(p.hours for p in proposal.proposals)

@@ -50,6 +50,15 @@ MAX_STATES = 8
 STEPS = ((1.0, 6.0), (2.0, 6.0), (4.0, 8.0), (4.0, 12.0), (8.0, 12.0))
 #: rest before a candidate's first state (min): the experiment starts in equilibrium
 LEAD_IN_MIN = 30.0
+#: a state cuts when a spindle current factor lies above its no-load level at the state's speed by more than this
+#: share of its production maximum (the no-load level: a low quantile of the production windows at that speed)
+CUT_SHARE = 0.1
+#: the no-load level at a speed: this quantile of a current factor over the production windows within
+#: ``SPEED_BAND`` of that speed (jobs that do not cut; most production runs some without a cut)
+NO_LOAD_QUANTILE = 0.1
+SPEED_BAND = 0.05
+#: units a spindle speed factor is given in
+SPEED_UNITS = ("rpm", "1/min", "min^-1", "min-1")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -59,6 +68,9 @@ class State:
     levels: Mapping[str, float]
     hours: float
     label: str
+    #: the spindle current factors above their no-load level at this speed: production cut here, and an
+    #: experiment reaches these levels only by cutting a test piece at this speed
+    cutting: bool = False
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -73,9 +85,18 @@ class Proposal:
     reaches: tuple[str, ...] = ()  # the factor levels and ratios beyond the coverage it must reach
     relative_variance: float = 0.0  # the design criterion after it (summed over axes)
 
+    @property
+    def cuts(self) -> bool:
+        """Whether a step cuts (on a real machine: a test piece cut at the step's speed and currents)."""
+        return any(s.cutting for s, _ in self.steps)
+
     def describe(self) -> str:
         body = "; then ".join(f"{m / 60:.3g} h at {s.label}" for s, m in self.steps)
-        return f"{self.name} ({self.hours:.3g} h): {LEAD_IN_MIN:g} min at rest, {body}; then at rest"
+        text = f"{self.name} ({self.hours:.3g} h): {LEAD_IN_MIN:g} min at rest, {body}; then at rest"
+        if self.cuts:
+            text += (" (cutting: hold the spindle at the step's speed and cut a test piece with a load that brings "
+                     "its currents to the step's levels, as production's cutting jobs did)")
+        return text
 
 
 @dataclass(kw_only=True)
@@ -139,10 +160,49 @@ class AxisDesign:
         return X.T @ X / self.sigma2
 
 
+def spindle_factors(factors: Sequence[str], units: Mapping[str, str], coverage) -> tuple[str | None, tuple[str, ...]]:
+    """The spindle speed factor (its unit is a speed, ``SPEED_UNITS``) and the current factors the experiments
+    moved with it (the model coverage's co-varying ratios per speed), or (None, ()) when there is none."""
+    speeds = [f for f in factors if units.get(f, "").strip().lower() in SPEED_UNITS]
+    if len(speeds) != 1 or coverage is None:
+        return None, ()
+    return speeds[0], tuple(r.of for r in coverage.ratios if r.per == speeds[0])
+
+
+def cutting_windows(du: np.ndarray, factors: Sequence[str], speed: str | None, loads: Sequence[str]) -> np.ndarray:
+    """Per window: whether a spindle current factor exceeds its no-load level at the window's speed (a cut).
+
+    The no-load level at a speed is the ``NO_LOAD_QUANTILE`` of that factor over the windows within
+    ``SPEED_BAND`` of the speed: the jobs that ran there without a cut. Where every job at a speed cut, the
+    level is a cut's and nothing is flagged there (said by the caller's note: no cut seen, none proposed).
+    """
+    n = du.shape[1]
+    out = np.zeros(n, dtype=bool)
+    if speed is None or not loads:
+        return out
+    v = du[factors.index(speed)]
+    on = v > 0.1 * max(float(v.max()), 1e-300)
+    for f in loads:
+        x = du[factors.index(f)]
+        top = max(float(np.abs(x).max()), 1e-300)
+        base = np.full(n, np.inf)
+        for k in np.flatnonzero(on):
+            near = on & (np.abs(v - v[k]) <= SPEED_BAND * v[k])
+            base[k] = np.quantile(x[near], NO_LOAD_QUANTILE)
+        out |= on & (x - base > CUT_SHARE * top)
+    return out
+
+
 def operating_states(preps: Sequence[Prepared], factors: Sequence[str], units: Mapping[str, str],
-                     reference: Mapping[str, float], *, max_states: int = MAX_STATES) -> list[State]:
-    """Production windows grouped by their factor levels relative to the production maxima, most frequent first."""
+                     reference: Mapping[str, float], *, max_states: int = MAX_STATES, speed: str | None = None,
+                     loads: Sequence[str] = ()) -> list[State]:
+    """Production windows grouped by their factor levels relative to the production maxima, most frequent first.
+
+    With the spindle's ``speed`` factor and its current factors ``loads``, a state whose windows mostly cut
+    (:func:`cutting_windows`) is marked ``cutting``.
+    """
     du = np.concatenate([np.nan_to_num(p.du[: len(factors)]) for p in preps], axis=1)
+    cut = cutting_windows(du, list(factors), speed, loads)
     dt = preps[0].dt_s
     top = np.maximum(np.abs(du).max(axis=1), 1e-300)
     rel = du / top[:, None]
@@ -156,7 +216,9 @@ def operating_states(preps: Sequence[Prepared], factors: Sequence[str], units: M
         levels = {f: float(np.median(du[j, g])) for j, f in enumerate(factors)}
         shown = [f"{f} {levels[f] + reference.get(f, 0.0):.4g}{(' ' + units[f]) if units.get(f) else ''}"
                  for j, f in enumerate(factors) if abs(levels[f]) > 0.05 * top[j]]
-        out.append(State(levels=levels, hours=len(g) * dt / 3600.0, label=", ".join(shown) or "rest"))
+        cutting = bool(np.mean(cut[g]) > 0.5)
+        label = (", ".join(shown) or "rest") + (" (cutting)" if cutting else "")
+        out.append(State(levels=levels, hours=len(g) * dt / 3600.0, label=label, cutting=cutting))
     return out
 
 
@@ -243,7 +305,8 @@ def plan(result: IdentifyResult, experiments: Sequence[Prepared], production: Se
 
     infos = {a: d.info for a, d in designs.items()}
     j0, sd0 = criterion(infos)
-    states = operating_states(production, factors, model.units, model.reference)
+    speed, loads = spindle_factors(factors, model.units, model.coverage)
+    states = operating_states(production, factors, model.units, model.reference, speed=speed, loads=loads)
     cands = candidates(states, max_hours)
     cand_info = []
     for name, steps, hours in cands:
@@ -277,5 +340,14 @@ def plan(result: IdentifyResult, experiments: Sequence[Prepared], production: Se
         j_cur, sd_cur = j, sd
     notes = [f"time constants and structures held at the experiments' identification; the uncertainty is of the "
              f"gains only ({len(cands)} candidates from {len(states)} production states)"]
+    if speed is None:
+        notes.append("no spindle speed factor (unit rpm) with current factors the experiments moved with it: cutting "
+                     "loads were not looked for")
+    else:
+        n_cut = sum(s.cutting for s in states)
+        notes.append(f"{n_cut} of {len(states)} production states cut ({', '.join(loads)} above their no-load level "
+                     f"at the state's {speed})" if n_cut else
+                     f"no production state cuts ({', '.join(loads)} within {CUT_SHARE:.0%} of their production "
+                     f"maximum of the no-load level at each {speed})")
     return PlanResult(proposals=proposals, states=states, sd_before_um=sd0, relative_variance_before=j0,
                       candidates=len(cands), notes=notes)

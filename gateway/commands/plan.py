@@ -74,7 +74,8 @@ def run(args: argparse.Namespace) -> int:
             print("  must reach: " + "; ".join(p.reaches))
         print("  uncertainty after: " + ", ".join(f"{a} {b:.3g} -> {c:.3g} um" for a, (b, c) in p.sd_um.items()))
         if k in scenarios:
-            print(f"  scenario: {scenarios[k]}")
+            path, cuts = scenarios[k]
+            print(f"  scenario: {path}" + (f" (on the simulated machine {cuts})" if cuts else ""))
     print("operating states of production:")
     for i, s in enumerate(out.states):
         print(f"  state {i + 1}: {s.label} ({s.hours:.3g} h)")
@@ -98,20 +99,39 @@ def _write_scenarios(out, profile, directory: Path) -> dict[int, Path]:
     for k, p in enumerate(out.proposals):
         steps = [({f: v + ref[f] for f, v in s.levels.items()}, minutes) for s, minutes in p.steps]
         text = proposal_scenario(f"plan-{k + 1}", p.describe(), steps, hours=p.hours, lead_in_min=LEAD_IN_MIN,
-                                 seed=9100 + k, note="reaches " + ("; ".join(p.reaches) or "nothing beyond coverage"))
+                                 seed=9100 + k, note="reaches " + ("; ".join(p.reaches) or "nothing beyond coverage"),
+                                 cutting=[s.cutting for s, _ in p.steps])
         path = directory / f"plan-{k + 1}.toml"
         path.write_text(text, encoding="utf-8")
-        written[k] = path
+        written[k] = (path, _cuts(steps, [s.cutting for s, _ in p.steps]))
     return written
+
+
+def _cuts(steps, cutting) -> str:
+    """The simulated machine's cutting power for each cutting step, for the printed proposal."""
+    from simulators.machine.proposal import cutting_kw
+
+    parts = []
+    for k, ((levels, _), cut) in enumerate(zip(steps, cutting, strict=True)):
+        if cut:
+            rpm = levels.get("spindle_speed", 0.0)
+            kw, capped = cutting_kw(rpm, levels.get("spindle_i2_sq", 0.0))
+            parts.append(f"step {k + 1} cuts {kw:.3g} kW at {rpm:.4g} rpm"
+                         + (" (the drive's torque limit there; production's level is beyond it)" if capped else ""))
+    return "; ".join(parts)
 
 
 def _json(out, scenarios) -> dict:
     return {"uncertainty_before_um": out.sd_before_um,
             "proposals": [{"name": p.name, "hours": p.hours, "description": p.describe(),
-                           "steps": [{"levels": dict(s.levels), "minutes": m, "label": s.label} for s, m in p.steps],
+                           "steps": [{"levels": dict(s.levels), "minutes": m, "label": s.label, "cutting": s.cutting}
+                                     for s, m in p.steps],
                            "reaches": list(p.reaches),
                            "uncertainty_um": {a: {"before": b, "after": c} for a, (b, c) in p.sd_um.items()},
-                           "scenario": str(scenarios[k]) if k in scenarios else None}
+                           "cutting": p.cuts,
+                           "scenario": str(scenarios[k][0]) if k in scenarios else None,
+                           "simulated_cut": scenarios[k][1] if k in scenarios else None}
                           for k, p in enumerate(out.proposals)],
-            "states": [{"label": s.label, "hours": s.hours, "levels": dict(s.levels)} for s in out.states],
+            "states": [{"label": s.label, "hours": s.hours, "levels": dict(s.levels), "cutting": s.cutting}
+                       for s in out.states],
             "notes": out.notes}

@@ -49,7 +49,7 @@ from pathlib import Path
 from gateway.errors import SimulationError, did_you_mean
 from gateway.tomlcheck import NAME, Table, TomlDoc, describe
 from simulators.machine.effects import EFFECTS, Effects, parse_effect
-from simulators.machine.params import AXES, DEFAULT_MACHINE, RAD_PER_RPM, MachineParams
+from simulators.machine.params import AXES, DEFAULT_MACHINE, RAD_PER_RPM, MachineParams, SpindleParams
 
 BUNDLED_PACKAGE = "simulators.scenarios"
 
@@ -283,16 +283,21 @@ def _check_cut(t: Table, cutting_kw: float, speeds: tuple[float, ...], machine: 
                                 f"with a cut, got cutting_kw = {cutting_kw:g}")
         return None
     for rpm in speeds:
-        w = rpm * RAD_PER_RPM
-        need = cutting_kw * 1000.0 / w + sp.coulomb_nm + sp.viscous_nm_s * w
-        limit = sp.torque_limit_nm * min(1.0, sp.omega_base / w)
-        if need > limit:
+        limit_nm, most_kw = cutting_limit(sp, rpm)
+        if cutting_kw > most_kw:
             t.problem("cutting_kw", f"expected a cutting power the spindle can take at {rpm:g} rpm (cutting "
-                                    f"torque plus friction <= {limit:.4g} Nm, the drive's limit there: at most "
-                                    f"{(limit - sp.coulomb_nm - sp.viscous_nm_s * w) * w / 1000.0:.3g} kW), "
-                                    f"got {cutting_kw:g}")
+                                    f"torque plus friction <= {limit_nm:.4g} Nm, the drive's limit there: at most "
+                                    f"{most_kw:.3g} kW), got {cutting_kw:g}")
             return None
     return cutting_kw
+
+
+def cutting_limit(sp: SpindleParams, rpm: float) -> tuple[float, float]:
+    """(the drive's torque limit at ``rpm`` in Nm, the most cutting power it leaves in kW): the cutting torque
+    plus the friction at speed must lie within the limit (constant power above base speed)."""
+    w = rpm * RAD_PER_RPM
+    limit = sp.torque_limit_nm * min(1.0, sp.omega_base / w)
+    return limit, (limit - sp.coulomb_nm - sp.viscous_nm_s * w) * w / 1000.0
 
 
 def _parse_speeds(t: Table, max_rpm: float) -> tuple[tuple[float, ...] | None, float]:
