@@ -50,13 +50,10 @@ MAX_STATES = 8
 STEPS = ((1.0, 6.0), (2.0, 6.0), (4.0, 8.0), (4.0, 12.0), (8.0, 12.0))
 #: rest before a candidate's first state (min): the experiment starts in equilibrium
 LEAD_IN_MIN = 30.0
-#: a state cuts when a spindle current factor lies above its no-load level at the state's speed by more than this
-#: share of its production maximum (the no-load level: a low quantile of the production windows at that speed)
+#: a state cuts when the ratio of two spindle current factors (rotor to stator current squared) lies beyond the
+#: experiments' covered range by more than the coverage margin, with the larger one at least this share of its
+#: production maximum
 CUT_SHARE = 0.1
-#: the no-load level at a speed: this quantile of a current factor over the production windows within
-#: ``SPEED_BAND`` of that speed (jobs that do not cut; most production runs some without a cut)
-NO_LOAD_QUANTILE = 0.1
-SPEED_BAND = 0.05
 #: units a spindle speed factor is given in
 SPEED_UNITS = ("rpm", "1/min", "min^-1", "min-1")
 
@@ -169,40 +166,35 @@ def spindle_factors(factors: Sequence[str], units: Mapping[str, str], coverage) 
     return speeds[0], tuple(r.of for r in coverage.ratios if r.per == speeds[0])
 
 
-def cutting_windows(du: np.ndarray, factors: Sequence[str], speed: str | None, loads: Sequence[str]) -> np.ndarray:
-    """Per window: whether a spindle current factor exceeds its no-load level at the window's speed (a cut).
+def is_cutting(levels: Mapping[str, float], coverage, loads: Sequence[str], top: Mapping[str, float]) -> bool:
+    """Whether a state's spindle currents show a cutting load: the ratio of two of them beyond what the
+    experiments' no-load running (accelerations included) reached.
 
-    The no-load level at a speed is the ``NO_LOAD_QUANTILE`` of that factor over the windows within
-    ``SPEED_BAND`` of the speed: the jobs that ran there without a cut. Where every job at a speed cut, the
-    level is a cut's and nothing is flagged there (said by the caller's note: no cut seen, none proposed).
+    At constant speed without a cut only friction loads the spindle, so the torque-carrying (rotor) current is
+    small beside the magnetising (stator) one; accelerating raises both, a cut raises the torque current at
+    speed for as long as it lasts. A ratio (of / per, both co-varying with the speed) above the highest the
+    experiments covered, by more than the coverage margin, with ``of`` at least ``CUT_SHARE`` of its production
+    maximum ``top``, is a cut.
     """
-    n = du.shape[1]
-    out = np.zeros(n, dtype=bool)
-    if speed is None or not loads:
-        return out
-    v = du[factors.index(speed)]
-    on = v > 0.1 * max(float(v.max()), 1e-300)
-    for f in loads:
-        x = du[factors.index(f)]
-        top = max(float(np.abs(x).max()), 1e-300)
-        base = np.full(n, np.inf)
-        for k in np.flatnonzero(on):
-            near = on & (np.abs(v - v[k]) <= SPEED_BAND * v[k])
-            base[k] = np.quantile(x[near], NO_LOAD_QUANTILE)
-        out |= on & (x - base > CUT_SHARE * top)
-    return out
+    if coverage is None:
+        return False
+    for r in coverage.ratios:
+        if r.of in loads and r.per in loads and r.high > 0:
+            of, per = levels.get(r.of, 0.0), levels.get(r.per, 0.0)
+            if per > 0 and of > CUT_SHARE * top.get(r.of, 0.0) and of / per > r.high * (1.0 + coverage.margin):
+                return True
+    return False
 
 
 def operating_states(preps: Sequence[Prepared], factors: Sequence[str], units: Mapping[str, str],
-                     reference: Mapping[str, float], *, max_states: int = MAX_STATES, speed: str | None = None,
+                     reference: Mapping[str, float], *, max_states: int = MAX_STATES, coverage=None,
                      loads: Sequence[str] = ()) -> list[State]:
     """Production windows grouped by their factor levels relative to the production maxima, most frequent first.
 
-    With the spindle's ``speed`` factor and its current factors ``loads``, a state whose windows mostly cut
-    (:func:`cutting_windows`) is marked ``cutting``.
+    With the model's ``coverage`` and the spindle's current factors ``loads``, a state whose currents show a
+    cut (:func:`is_cutting`) is marked ``cutting``.
     """
     du = np.concatenate([np.nan_to_num(p.du[: len(factors)]) for p in preps], axis=1)
-    cut = cutting_windows(du, list(factors), speed, loads)
     dt = preps[0].dt_s
     top = np.maximum(np.abs(du).max(axis=1), 1e-300)
     rel = du / top[:, None]
@@ -216,7 +208,7 @@ def operating_states(preps: Sequence[Prepared], factors: Sequence[str], units: M
         levels = {f: float(np.median(du[j, g])) for j, f in enumerate(factors)}
         shown = [f"{f} {levels[f] + reference.get(f, 0.0):.4g}{(' ' + units[f]) if units.get(f) else ''}"
                  for j, f in enumerate(factors) if abs(levels[f]) > 0.05 * top[j]]
-        cutting = bool(np.mean(cut[g]) > 0.5)
+        cutting = is_cutting(levels, coverage, loads, {f: float(top[j]) for j, f in enumerate(factors)})
         label = (", ".join(shown) or "rest") + (" (cutting)" if cutting else "")
         out.append(State(levels=levels, hours=len(g) * dt / 3600.0, label=label, cutting=cutting))
     return out
@@ -306,7 +298,8 @@ def plan(result: IdentifyResult, experiments: Sequence[Prepared], production: Se
     infos = {a: d.info for a, d in designs.items()}
     j0, sd0 = criterion(infos)
     speed, loads = spindle_factors(factors, model.units, model.coverage)
-    states = operating_states(production, factors, model.units, model.reference, speed=speed, loads=loads)
+    states = operating_states(production, factors, model.units, model.reference, coverage=model.coverage,
+                              loads=loads)
     cands = candidates(states, max_hours)
     cand_info = []
     for name, steps, hours in cands:
@@ -345,9 +338,9 @@ def plan(result: IdentifyResult, experiments: Sequence[Prepared], production: Se
                      "loads were not looked for")
     else:
         n_cut = sum(s.cutting for s in states)
-        notes.append(f"{n_cut} of {len(states)} production states cut ({', '.join(loads)} above their no-load level "
-                     f"at the state's {speed})" if n_cut else
-                     f"no production state cuts ({', '.join(loads)} within {CUT_SHARE:.0%} of their production "
-                     f"maximum of the no-load level at each {speed})")
+        notes.append(f"{n_cut} of {len(states)} production states cut (a ratio of {', '.join(loads)} beyond the "
+                     f"experiments' no-load running)" if n_cut else
+                     f"no production state cuts (the ratios of {', '.join(loads)} within the experiments' no-load "
+                     f"running)")
     return PlanResult(proposals=proposals, states=states, sd_before_um=sd0, relative_variance_before=j0,
                       candidates=len(cands), notes=notes)

@@ -92,3 +92,38 @@ def test_bad_arguments_are_named(planned, capsys):
     with pytest.raises(SystemExit):  # argparse: --production is required
         main(["plan", "--profile", str(PROFILE), *exps])
     assert "--production" in capsys.readouterr().err
+
+
+def test_a_production_day_that_cuts_gets_a_cutting_experiment_the_simulator_records(tmp_path, sim_csv_dir):
+    """The bundled day with 3 kW cuts on its 2000 rpm roughing jobs: plan sees the rotor current squared above
+    the no-load level at that speed, proposes cutting there (said in the text), and the scenario it writes
+    records the cut: the rotor current squared reaches the cutting state's level, far beyond the experiments'."""
+    text = (PROFILE.parent.parent / "simulators" / "scenarios" / "production-day.toml").read_text()
+    text = text.replace("spindle_rpm = 2000\n", "spindle_rpm = 2000\ncutting_kw = 3.0\n")
+    assert text.count("cutting_kw") >= 2
+    from simulators.machine.run import write_run
+
+    day = simulate(parse_scenario_text(text.replace('name = "production-day"', 'name = "cutting-day"')))
+    write_run(day, tmp_path)
+    out = tmp_path / "plan"
+    code = main(["plan", "--profile", str(PROFILE), *(str(sim_csv_dir / f"{n}.csv") for n in EXPERIMENTS),
+                 "--production", str(tmp_path / "cutting-day.csv"), "-o", str(out)])
+    assert code == 0
+    doc = json.loads((out / "plan.json").read_text())
+    cutting_states = [s for s in doc["states"] if s["cutting"]]
+    assert cutting_states and all(1900 < s["levels"]["spindle_speed"] < 2100 for s in cutting_states)
+    cuts = [p for p in doc["proposals"] if p["cutting"]]
+    assert cuts, [p["name"] for p in doc["proposals"]]
+    p = cuts[0]
+    assert "cut a test piece" in p["description"] and "kW at 2000 rpm" in p["simulated_cut"]
+    sc = parse_scenario_text(Path(p["scenario"]).read_text(), source=p["scenario"])
+    assert any(seg.cutting_w > 0 for seg in sc.segments)
+    run = simulate(sc)
+    i2 = run.factors["spindle_i2_sq"]
+    experiments_i2 = max(float(np.max(simulate(load_scenario(n)).factors["spindle_i2_sq"]))
+                         for n in ("spindle-1000rpm", "spindle-400-600rpm"))
+    for step in p["steps"]:
+        if step["cutting"]:  # the cut's rotor current squared, within 20 % of the state's, in the step's windows
+            want = step["levels"]["spindle_i2_sq"]
+            assert want > 2 * experiments_i2
+            assert np.any(np.abs(i2 - want) < 0.2 * want), (want, float(i2.max()))
