@@ -158,8 +158,11 @@ class AxisDesign:
 
 
 def spindle_factors(factors: Sequence[str], units: Mapping[str, str], coverage) -> tuple[str | None, tuple[str, ...]]:
-    """The spindle speed factor (its unit is a speed, ``SPEED_UNITS``) and the current factors the experiments
-    moved with it (the model coverage's co-varying ratios per speed), or (None, ()) when there is none."""
+    """The spindle speed factor and the current factors the experiments moved with it, or (None, ()).
+
+    The speed factor is the one factor given in a speed unit (``SPEED_UNITS``); its current factors are those
+    the model's coverage holds a co-varying ratio of per that speed.
+    """
     speeds = [f for f in factors if units.get(f, "").strip().lower() in SPEED_UNITS]
     if len(speeds) != 1 or coverage is None:
         return None, ()
@@ -167,8 +170,7 @@ def spindle_factors(factors: Sequence[str], units: Mapping[str, str], coverage) 
 
 
 def is_cutting(levels: Mapping[str, float], coverage, loads: Sequence[str], top: Mapping[str, float]) -> bool:
-    """Whether a state's spindle currents show a cutting load: the ratio of two of them beyond what the
-    experiments' no-load running (accelerations included) reached.
+    """Whether a state's spindle currents show a cutting load (a ratio beyond the experiments' no-load running).
 
     At constant speed without a cut only friction loads the spindle, so the torque-carrying (rotor) current is
     small beside the magnetising (stator) one; accelerating raises both, a cut raises the torque current at

@@ -33,8 +33,10 @@ def simulatable(factors: Sequence[str]) -> bool:
 
 
 def cutting_kw(rpm: float, i2_sq: float, machine: MachineParams = DEFAULT_MACHINE) -> tuple[float, bool]:
-    """(cutting power in kW, whether the drive's limit capped it) that gives a steady rotor current squared
-    ``i2_sq`` (A^2) at ``rpm``: I2 = rotor_ratio x iq, iq = (friction + P / w) / (k_T x flux)."""
+    """(cutting power in kW, whether the drive's limit capped it) for a rotor current squared ``i2_sq`` at ``rpm``.
+
+    At steady speed I2 = rotor_ratio x iq, iq = (friction + P / w) / (k_T x flux): solved for P.
+    """
     sp = machine.spindle
     w = rpm * RAD_PER_RPM
     flux = min(1.0, sp.omega_base / w)
@@ -47,8 +49,11 @@ def cutting_kw(rpm: float, i2_sq: float, machine: MachineParams = DEFAULT_MACHIN
 
 def segment(levels: Mapping[str, float], minutes: float, machine: MachineParams = DEFAULT_MACHINE, *,
             cutting: bool = False) -> dict:
-    """One scenario segment holding factor ``levels`` (absolute values) for ``minutes``; ``cutting``: with the
-    cut that brings the rotor current squared to ``levels["spindle_i2_sq"]`` (:func:`cutting_kw`)."""
+    """One scenario segment holding factor ``levels`` (absolute values) for ``minutes``.
+
+    ``cutting``: with the cut that brings the rotor current squared to ``levels["spindle_i2_sq"]``
+    (:func:`cutting_kw`).
+    """
     seg: dict = {"minutes": max(1, round(minutes))}
     rpm = float(levels.get("spindle_speed", 0.0))
     if rpm >= 1.0:

@@ -293,8 +293,10 @@ def _check_cut(t: Table, cutting_kw: float, speeds: tuple[float, ...], machine: 
 
 
 def cutting_limit(sp: SpindleParams, rpm: float) -> tuple[float, float]:
-    """(the drive's torque limit at ``rpm`` in Nm, the most cutting power it leaves in kW): the cutting torque
-    plus the friction at speed must lie within the limit (constant power above base speed)."""
+    """(the drive's torque limit at ``rpm`` in Nm, the most cutting power it leaves there in kW).
+
+    The cutting torque plus the friction at speed must lie within the limit (constant power above base speed).
+    """
     w = rpm * RAD_PER_RPM
     limit = sp.torque_limit_nm * min(1.0, sp.omega_base / w)
     return limit, (limit - sp.coulomb_nm - sp.viscous_nm_s * w) * w / 1000.0
