@@ -17,6 +17,7 @@ nuisance columns and never the model.
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 from collections.abc import Sequence
@@ -103,14 +104,22 @@ class Hypothesis:
     #: it can mimic most slow heat sources, so it counts one parameter more when hypotheses are ranked
     generic: bool = False
 
-    @property
+    @functools.cached_property
     def complexity(self) -> int:
         """Free parameters: the most gains of any setting plus every parameter the grid varies."""
         n = 0
         for grid in self.settings.values():
             gains = max((len(s.components) for s in grid), default=0)
-            varied = {k for s in grid for k, _ in s.params
-                      if len({dict(t.params).get(k) for t in grid}) > 1}
+            # one pass over the grid (a grid has hundreds of settings; the report asks for every trial's)
+            values: dict[str, set] = {}
+            holders: dict[str, int] = {}
+            for s in grid:
+                params = dict(s.params)
+                for k, v in params.items():
+                    values.setdefault(k, set()).add(v)
+                    holders[k] = holders.get(k, 0) + 1
+            # varied: two values, or present in some settings only
+            varied = [k for k, vs in values.items() if len(vs) > 1 or holders[k] < len(grid)]
             n = max(n, gains + len(varied))
         return n
 

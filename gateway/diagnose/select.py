@@ -185,9 +185,12 @@ class _FixedSolve:
 def _sse(FF: np.ndarray, Fr: np.ndarray, rr: np.ndarray, XF: np.ndarray, XX: np.ndarray, Xr: np.ndarray,
          bF: np.ndarray, bX: np.ndarray) -> np.ndarray:
     """SSE of r - F bF - X bX from Gram quantities (leading axes broadcast)."""
-    return (rr - 2 * (np.einsum("...i,...i->...", bF, Fr) + np.einsum("...i,...i->...", bX, Xr))
-            + np.einsum("...i,...ij,...j->...", bF, FF, bF) + 2 * np.einsum("...p,...pq,...q->...", bX, XF, bF)
-            + np.einsum("...i,...ij,...j->...", bX, XX, bX))
+    # matrix-vector products first (BLAS), then dot products: a three-operand einsum loops in C without BLAS
+    FFb = np.matmul(FF, bF[..., None])[..., 0]
+    XFb = np.matmul(XF, bF[..., None])[..., 0]
+    XXb = np.matmul(XX, bX[..., None])[..., 0]
+    return (rr - 2 * (np.sum(bF * Fr, axis=-1) + np.sum(bX * Xr, axis=-1))
+            + np.sum(bF * FFb, axis=-1) + 2 * np.sum(bX * XFb, axis=-1) + np.sum(bX * XXb, axis=-1))
 
 
 def _quad(G: np.ndarray, h: np.ndarray, s: np.ndarray, beta: np.ndarray) -> np.ndarray:
