@@ -1,7 +1,8 @@
 """CPU time of ``cncgw diagnose``: this tree against a baseline revision, on the same recordings, in one run.
 
     .venv/bin/python bench/diagnose_speed.py [--cases "room recorded:3,slow mode:1,none:1"]
-                                             [--baseline REV] [--cache DIR] [--keep DIR] [--repeat N]
+                                             [--baseline REV] [--this REV] [--cache DIR] [--keep DIR]
+                                             [--repeat N]
 
 Per case (an effect and plant variant of bench/diagnose.py's new protocol: the nine identification
 experiments and four production days, the effect acting in all of them), the recordings are simulated once
@@ -103,6 +104,7 @@ def main() -> int:
     ap.add_argument("--cases", default="room recorded:3,slow mode:1,none:1",
                     help="comma-separated EFFECT:VARIANT of bench/diagnose.py's new protocol")
     ap.add_argument("--baseline", default="main", help="git revision timed against this tree (default main)")
+    ap.add_argument("--this", help="time this git revision instead of the working tree (it can change meanwhile)")
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "cncgw-bench" / "diagnose"),
                     help="recordings cache (shared with bench/diagnose.py)")
     ap.add_argument("--keep", help="keep the models and both diagnoses' reports here")
@@ -115,8 +117,9 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="diag-speed-") as tmp:
         work = Path(args.keep) if args.keep else Path(tmp)
         old_tree = baseline_tree(args.baseline, Path(tmp) / "baseline")
-        trees = {"baseline": old_tree, "this": ROOT}
-        print(f"baseline {args.baseline} vs this tree {ROOT}; CPU s of the diagnose process (one BLAS thread)")
+        this = baseline_tree(args.this, Path(tmp) / "this") if args.this else ROOT
+        trees = {"baseline": old_tree, "this": this}
+        print(f"baseline {args.baseline} vs {args.this or ROOT}; CPU s of the diagnose process (one BLAS thread)")
         print(f"{'case':24s} {'baseline':>9s} {'this':>9s} {'ratio':>6s}  same  max rel diff")
         totals = {k: 0.0 for k in trees}
         for effect, variant in cases:
