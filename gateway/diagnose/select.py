@@ -26,6 +26,8 @@ import numpy as np
 import scipy.stats
 
 RIDGE = 1e-9  # relative to unit-norm columns: keeps near-collinear offsets and decays solvable
+#: settings of one grid are scored together up to this many regressors at once (memory: K x this x fixed)
+BATCH_COLUMNS = 256
 
 
 BURN_IN = -2  #: block id of a recording's first block: always fitted, never held out
@@ -125,21 +127,27 @@ class GridScores:
 
 
 def _run_sums(fold: Fold, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per-slot sums X'F, X'X, X'r of the scaled regressors ``X`` (slot K: burn-in rows), and X's scale."""
-    q, p = fold.F.shape[1], X.shape[1]
-    xs = np.sqrt(np.einsum("ij,ij->j", X, X))
+    """Per-slot sums X'F, X'X, X'r of G settings' scaled regressors ``X`` (n, G, p), and X's scale (G, p).
+
+    Returned with the settings first: (G, K + 1, p, q), (G, K + 1, p, p), (G, K + 1, p) (slot K: burn-in rows).
+    Every setting of a batch in one matrix product per contiguous run of a block: the fixed columns are read
+    once for the whole batch, not once per setting.
+    """
+    n, n_set, p = X.shape
+    q = fold.F.shape[1]
+    xs = np.sqrt(np.einsum("ngp,ngp->gp", X, X))
     xs[xs == 0] = 1.0
     Xs = X / xs
-    XF = np.zeros((fold.k + 1, p, q))
-    XX = np.zeros((fold.k + 1, p, p))
-    Xr = np.zeros((fold.k + 1, p))
-    # one matrix product per contiguous run of a block: wide fixed designs stay cheap
+    flat = Xs.reshape(n, n_set * p)
+    XF = np.zeros((fold.k + 1, n_set * p, q))
+    XX = np.zeros((fold.k + 1, n_set, p, p))
+    Xr = np.zeros((fold.k + 1, n_set * p))
     for a, b, j in zip(fold.starts, fold.stops, fold.slot, strict=True):
-        Xb = Xs[a:b]
-        XF[j] += Xb.T @ fold.F[a:b]
-        XX[j] += Xb.T @ Xb
-        Xr[j] += Xb.T @ fold.r[a:b]
-    return XF, XX, Xr, xs
+        XF[j] += flat[a:b].T @ fold.F[a:b]
+        XX[j] += np.einsum("ngp,ngq->gpq", Xs[a:b], Xs[a:b])
+        Xr[j] += flat[a:b].T @ fold.r[a:b]
+    XF = XF.reshape(fold.k + 1, n_set, p, q).swapaxes(0, 1)
+    return XF, XX.swapaxes(0, 1), Xr.reshape(fold.k + 1, n_set, p).swapaxes(0, 1), xs
 
 
 class _FixedSolve:
@@ -166,19 +174,23 @@ class _FixedSolve:
         self.without = _quad(fold.FF[:-1], fold.Fr[:-1], fold.rr[:-1], self.b_tr)
 
     def solve(self, XF: np.ndarray, XX: np.ndarray, Xr: np.ndarray) -> tuple[np.ndarray, ...]:
-        """(beta_F, beta_X per fold; beta_F, beta_X on all data) for per-slot sums of a setting."""
+        """(beta_F, beta_X per fold; beta_F, beta_X on all data) for per-slot sums of G settings.
+
+        ``XF`` (G, K + 1, p, q), ``XX`` (G, K + 1, p, p), ``Xr`` (G, K + 1, p); the betas keep the leading G.
+        """
         p = XX.shape[-1]
         eye = np.eye(p) * RIDGE
-        XF_all, XX_all, Xr_all = XF.sum(0), XX.sum(0), Xr.sum(0)
-        XF_tr, XX_tr, Xr_tr = XF_all - XF[:-1], XX_all - XX[:-1], Xr_all - Xr[:-1]
-        A = XF_tr @ self.inv_tr  # (K, p, q)
-        S = XX_tr - A @ np.swapaxes(XF_tr, 1, 2)
-        rhs = Xr_tr - np.einsum("kpq,kq->kp", A, self.Fr_tr)
+        XF_all, XX_all, Xr_all = XF.sum(1), XX.sum(1), Xr.sum(1)
+        XF_tr, XX_tr, Xr_tr = XF_all[:, None] - XF[:, :-1], XX_all[:, None] - XX[:, :-1], Xr_all[:, None] - Xr[:, :-1]
+        A = XF_tr @ self.inv_tr  # (G, K, p, q)
+        S = XX_tr - A @ np.swapaxes(XF_tr, -1, -2)
+        rhs = Xr_tr - (A @ self.Fr_tr[..., None])[..., 0]
         bX = np.linalg.solve(S + eye, rhs[..., None])[..., 0]
-        bF = self.b_tr - np.einsum("kpq,kp->kq", A, bX)
-        A1 = XF_all @ self.inv_all
-        bX1 = np.linalg.solve(XX_all - A1 @ XF_all.T + eye, Xr_all - A1 @ self.Fr_all)
-        bF1 = self.b_all - A1.T @ bX1
+        bF = self.b_tr - (np.swapaxes(A, -1, -2) @ bX[..., None])[..., 0]
+        A1 = XF_all @ self.inv_all  # (G, p, q)
+        bX1 = np.linalg.solve(XX_all - A1 @ np.swapaxes(XF_all, -1, -2) + eye,
+                              (Xr_all - A1 @ self.Fr_all)[..., None])[..., 0]
+        bF1 = self.b_all - (np.swapaxes(A1, -1, -2) @ bX1[..., None])[..., 0]
         return bF, bX, bF1, bX1
 
 
@@ -211,32 +223,40 @@ def grid_scores(fold: Fold, designs: Sequence[np.ndarray], *, signs: Sequence[np
     train = np.full((n_grid, k), np.inf)
     held = np.full((n_grid, k), np.inf)
     full = np.full(n_grid, np.inf)
-    gains_f: list[np.ndarray] = []
-    gains_a: list[np.ndarray] = []
     fs = fold.solver
+    gains_f: list[np.ndarray] = [np.zeros((k, 0))] * n_grid
+    gains_a: list[np.ndarray] = [np.zeros(0)] * n_grid
+    by_width: dict[int, list[int]] = {}
     for g, X in enumerate(designs):
-        if X.shape[1] == 0:  # nothing but nuisance: the fixed fit itself
-            train[g] = _quad(fs.FF_tr, fs.Fr_tr, fs.rr_tr, fs.b_tr)
-            held[g] = fs.without
-            full[g] = float(_quad(fs.FF_all, fs.Fr_all, fs.rr_all, fs.b_all))
-            gains_f.append(np.zeros((k, 0)))
-            gains_a.append(np.zeros(0))
+        by_width.setdefault(X.shape[1], []).append(g)
+    for p, members in by_width.items():
+        if p == 0:  # nothing but nuisance: the fixed fit itself
+            train[members] = _quad(fs.FF_tr, fs.Fr_tr, fs.rr_tr, fs.b_tr)
+            held[members] = fs.without
+            full[members] = float(_quad(fs.FF_all, fs.Fr_all, fs.rr_all, fs.b_all))
             continue
-        XF, XX, Xr, xs = _run_sums(fold, X)
-        bF, bX, bF1, bX1 = fs.solve(XF, XX, Xr)
-        gf = bX / xs
-        ga = bX1 / xs
-        sg = signs[g] if signs else None
-        lim = limits[g] if limits else None
-        ok_f = _admissible(gf, sg, lim)
-        ok_a = _admissible(ga[None, :], sg, lim)[0]
-        XF_all, XX_all, Xr_all = XF.sum(0), XX.sum(0), Xr.sum(0)
-        tr = _sse(fs.FF_tr, fs.Fr_tr, fs.rr_tr, XF_all - XF[:-1], XX_all - XX[:-1], Xr_all - Xr[:-1], bF, bX)
-        train[g] = np.where(ok_f, tr, np.inf)
-        held[g] = _sse(fold.FF[:-1], fold.Fr[:-1], fold.rr[:-1], XF[:-1], XX[:-1], Xr[:-1], bF, bX)
-        full[g] = float(_sse(fs.FF_all, fs.Fr_all, fs.rr_all, XF_all, XX_all, Xr_all, bF1, bX1)) if ok_a else np.inf
-        gains_f.append(gf)
-        gains_a.append(ga)
+        # settings of the same width scored together, in batches that keep the per-slot sums small
+        per = max(1, BATCH_COLUMNS // p)
+        for start in range(0, len(members), per):
+            idx = members[start: start + per]
+            XF, XX, Xr, xs = _run_sums(fold, np.stack([designs[g] for g in idx], axis=1))
+            bF, bX, bF1, bX1 = fs.solve(XF, XX, Xr)
+            gf = bX / xs[:, None, :]
+            ga = bX1 / xs
+            sg = _per_regressor([signs[g] for g in idx] if signs else None, p, 0.0)
+            lim = _per_regressor([limits[g] for g in idx] if limits else None, p, np.inf)
+            ok_f = _admissible_batch(gf, sg, lim)
+            ok_a = _admissible_batch(ga[:, None, :], sg, lim)[:, 0]
+            XF_all, XX_all, Xr_all = XF.sum(1), XX.sum(1), Xr.sum(1)
+            tr = _sse(fs.FF_tr, fs.Fr_tr, fs.rr_tr, XF_all[:, None] - XF[:, :-1], XX_all[:, None] - XX[:, :-1],
+                      Xr_all[:, None] - Xr[:, :-1], bF, bX)
+            train[idx] = np.where(ok_f, tr, np.inf)
+            held[idx] = _sse(fold.FF[:-1], fold.Fr[:-1], fold.rr[:-1], XF[:, :-1], XX[:, :-1], Xr[:, :-1], bF, bX)
+            full[idx] = np.where(ok_a, _sse(fs.FF_all, fs.Fr_all, fs.rr_all, XF_all, XX_all, Xr_all, bF1, bX1),
+                                 np.inf)
+            for i, g in enumerate(idx):
+                gains_f[g] = gf[i]
+                gains_a[g] = ga[i]
     return GridScores(train=train, held=held, full=full, gains_fold=gains_f, gains_all=gains_a, without=fs.without)
 
 
@@ -297,18 +317,35 @@ def _padded(rows: Sequence[np.ndarray]) -> np.ndarray:
     return out
 
 
-def _admissible(gains: np.ndarray, signs: np.ndarray | None, limits: np.ndarray | None) -> np.ndarray:
-    """Per row of ``gains`` (folds), whether every gain has its required sign and stays within its limit."""
-    ok = np.ones(gains.shape[0], dtype=bool)
-    p = gains.shape[1]
-    if signs is not None and len(signs):
-        sg = np.zeros(p)
-        sg[: min(p, len(signs))] = np.asarray(signs, float)[:p]
-        ok &= np.all(gains * sg >= 0, axis=1)
-    if limits is not None and len(limits):
-        lim = np.full(p, np.inf)
-        lim[: min(p, len(limits))] = np.asarray(limits, float)[:p]
-        ok &= np.all(np.abs(gains) <= lim, axis=1)
+def _per_regressor(values: Sequence[np.ndarray | None] | None, p: int, free: float) -> np.ndarray | None:
+    """Signs or limits of a batch of settings as a (G, p) array (``free`` where a setting gives none).
+
+    NaN rows: the setting gives no constraint at all (:func:`_admissible_batch` skips the check).
+    """
+    if values is None:
+        return None
+    out = np.full((len(values), p), free)
+    for i, v in enumerate(values):
+        if v is None or not len(v):
+            out[i] = np.nan
+        else:
+            m = min(p, len(v))
+            out[i, :m] = np.asarray(v, float)[:m]
+    return out
+
+
+def _admissible_batch(gains: np.ndarray, signs: np.ndarray | None, limits: np.ndarray | None) -> np.ndarray:
+    """Per setting and fold, whether every gain has its required sign and stays within its limit.
+
+    ``gains`` (G, K, p), ``signs`` and ``limits`` (G, p; a NaN row: that setting gives none) -> (G, K).
+    """
+    ok = np.ones(gains.shape[:2], dtype=bool)
+    if signs is not None:
+        given = ~np.isnan(signs[:, 0])
+        ok &= ~given[:, None] | np.all(gains * signs[:, None, :] >= 0, axis=-1)
+    if limits is not None:
+        given = ~np.isnan(limits[:, 0])
+        ok &= ~given[:, None] | np.all(np.abs(gains) <= limits[:, None, :], axis=-1)
     return ok
 
 

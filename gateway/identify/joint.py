@@ -149,6 +149,7 @@ class AxisProblem:
         w2 = es.weights(axis_index)
         self.w = np.sqrt(w2)
         self._w2 = w2[:, None]
+        self._unweighted = bool(np.all(w2 == 1.0))
         self._w2_sums = np.add.reduceat(w2, self._starts)[:, None] if self._starts.size else np.zeros((0, 1))
         self._y_means = self._group_means(self.y[:, None])[:, 0]
         self.y_demeaned = self.demean(self.y[:, None])[:, 0]
@@ -156,6 +157,20 @@ class AxisProblem:
         #: per input, where its time constants may go (default: the data's bounds)
         self.input_bounds = [b or self.bounds for b in (input_bounds or [None] * len(es.factors))]
         self.evaluations = 0
+        # the extra columns are the same in every solve: projected out once (Frisch-Waugh again), so each
+        # evaluation factorises the path columns only (a diagnosis carries dozens of nuisance columns)
+        self._extra_q: np.ndarray | None = None
+        if self.extra.shape[1]:
+            E = self.demean(self.extra)
+            escale = np.linalg.norm(E, axis=0)
+            escale[escale == 0] = 1.0
+            Qe, Re = scipy.linalg.qr(E / escale, mode="economic", check_finite=False)
+            diag = np.abs(np.diag(Re))
+            if diag.size and np.all(diag > 1e-10 * max(diag.max(), 1e-300)):  # else solved with the paths
+                self._extra_q, self._extra_r, self._extra_scale = Qe, Re, escale
+                self._extra_means = self._group_means(self.extra)
+                self._qty_extra = Qe.T @ self.y_demeaned
+                self._y_projected = self.y_demeaned - Qe @ self._qty_extra
         # the racing restarts an optimizer where the last one stopped: its first residual and Jacobian
         # were computed at the end of the round before (a few entries, each a design matrix's worth)
         self._memo: OrderedDict[tuple, object] = OrderedDict()
@@ -191,6 +206,8 @@ class AxisProblem:
 
     def _group_means(self, m: np.ndarray) -> np.ndarray:
         """Per-experiment weighted column means of ``m`` (rows of the experiments that have any)."""
+        if self._unweighted:  # multiplying by ones changes nothing but the time
+            return np.add.reduceat(m, self._starts, axis=0) / self._w2_sums
         return np.add.reduceat(m * self._w2, self._starts, axis=0) / self._w2_sums
 
     def demean(self, m: np.ndarray) -> np.ndarray:
@@ -198,14 +215,25 @@ class AxisProblem:
 
         The residual maker of the (weighted) offset columns: every fitted quantity lives in these rows.
         """
-        return self.w[:, None] * (m - np.repeat(self._group_means(m), self._counts[self._counts > 0], axis=0))
+        centred = m - np.repeat(self._group_means(m), self._counts[self._counts > 0], axis=0)
+        return centred if self._unweighted else self.w[:, None] * centred
+
+    def project_extra(self, m: np.ndarray) -> np.ndarray:
+        """Demeaned columns ``m`` less their projection on the (demeaned) extra columns."""
+        if self._extra_q is None:
+            return m
+        return m - self._extra_q @ (self._extra_q.T @ m)
 
     def solve(self, paths: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(path gains, extra gains, then per-experiment offsets; residual; Q of the demeaned columns).
 
         Columns are scaled for conditioning; the offsets come from the experiments' means after the gains.
+        With the extra columns projected out once (:meth:`project_extra`), Q spans the projected path
+        columns only: the residual maker is then (I - Q Q^T) applied after :meth:`project_extra`.
         """
         self.evaluations += 1
+        if self._extra_q is not None:
+            return self._solve_projected(paths)
         offsets = np.zeros(self.es.n_exp)
         if self.extra.shape[1]:
             paths = np.column_stack([paths, self.extra])
@@ -229,6 +257,38 @@ class AxisProblem:
         offsets[self._counts > 0] = self._y_means - self._group_means(paths) @ coef
         resid = self.y_demeaned - Q @ qty
         return np.concatenate([coef, offsets]), resid, Q
+
+    def _solve_projected(self, paths: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`solve` with the extra columns already factorised: only the path columns' QR is new."""
+        assert self._extra_q is not None
+        offsets = np.zeros(self.es.n_exp)
+        p = paths.shape[1]
+        y = self._y_projected
+        coef = np.zeros(p)
+        Q = np.zeros((self.n, 0))
+        if p:
+            X = self.demean(paths)
+            scale = np.linalg.norm(X, axis=0)
+            scale[scale == 0] = 1.0
+            Xs = X / scale
+            Q, R = scipy.linalg.qr(self.project_extra(Xs), mode="economic", check_finite=False)
+            qty = Q.T @ y
+            diag = np.abs(np.diag(R))
+            keep = diag > 1e-10 * max(diag.max(), 1e-300)
+            if keep.all():
+                coef = scipy.linalg.solve_triangular(R, qty, check_finite=False)
+            else:
+                coef[keep] = np.linalg.lstsq(R[np.ix_(keep, keep)], qty[keep], rcond=None)[0]
+            resid = y - Q @ qty
+            extra_rhs = self._qty_extra - self._extra_q.T @ (Xs @ coef)
+            coef = coef / scale
+        else:
+            resid = y.copy()
+            extra_rhs = self._qty_extra
+        extra = scipy.linalg.solve_triangular(self._extra_r, extra_rhs, check_finite=False) / self._extra_scale
+        means = self._group_means(paths) @ coef if p else 0.0
+        offsets[self._counts > 0] = self._y_means - means - self._extra_means @ extra
+        return np.concatenate([coef, extra, offsets]), resid, Q
 
     def fit(self, structures: Sequence[str], theta0: Sequence[Sequence[float]], *,
             max_nfev: int = 100) -> AxisFit:
@@ -277,7 +337,7 @@ class AxisProblem:
                 th[local] += h
                 moved = self.path_columns(j, structures[j], th)
                 V[:, q] = sum((m - c) * g for m, c, g in zip(moved, per_path[j], gains[j], strict=True)) / h
-            V = self.demean(V)
+            V = self.project_extra(self.demean(V))
             return -(V - Q @ (Q.T @ V))
 
         nfev = 1
