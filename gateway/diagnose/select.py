@@ -73,6 +73,7 @@ class Fold:
         self.starts = np.concatenate([[0], np.flatnonzero(np.diff(block)) + 1])
         self.stops = np.append(self.starts[1:], len(r))
         self.slot = np.where(block[self.starts] >= 0, block[self.starts], self.k)
+        self._slot_of_run = (self.slot[:, None] == np.arange(self.k + 1)[None, :]).astype(float)
         scale = np.sqrt(np.einsum("ij,ij->j", fixed, fixed))
         scale[scale == 0] = 1.0
         self.fixed_scale = scale
@@ -91,6 +92,11 @@ class Fold:
         if self._solver is None:
             self._solver = _FixedSolve(self)
         return self._solver
+
+    def run_sums(self, cols: np.ndarray) -> np.ndarray:
+        """Per-block sums along the last axis of ``cols`` (..., n) into K + 1 slots (the last: burn-in)."""
+        seg = np.add.reduceat(cols, self.starts, axis=-1)
+        return seg @ self._slot_of_run
 
     def sums(self, rows: np.ndarray) -> np.ndarray:
         """Per-block sums of ``rows`` (first axis: windows) into K + 1 slots (the last: burn-in)."""
@@ -126,28 +132,31 @@ class GridScores:
     without: np.ndarray  # (K,) held-out SSE without the hypothesis
 
 
-def _run_sums(fold: Fold, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per-slot sums X'F, X'X, X'r of G settings' scaled regressors ``X`` (n, G, p), and X's scale (G, p).
+def _run_sums(fold: Fold, XT: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per-slot sums X'F, X'X, X'r of G settings' scaled regressors, and X's scale (G, p).
 
-    Returned with the settings first: (G, K + 1, p, q), (G, K + 1, p, p), (G, K + 1, p) (slot K: burn-in rows).
-    Every setting of a batch in one matrix product per contiguous run of a block: the fixed columns are read
-    once for the whole batch, not once per setting.
+    ``XT`` (G p, n): setting g's regressors are rows g p .. g p + p - 1 (windows along a row, so each row
+    is one contiguous column of the stack). Returned slots first: (K + 1, G, p, q), (K + 1, G, p, p),
+    (K + 1, G, p) (slot K: burn-in rows). X'F is one matrix product per contiguous run
+    of a block for the whole batch (the fixed columns are read once, not once per setting); X'X and X'r are
+    sums per run of elementwise products.
     """
-    n, n_set, p = X.shape
+    n_set = XT.shape[0] // p
     q = fold.F.shape[1]
-    xs = np.sqrt(np.einsum("ngp,ngp->gp", X, X))
+    xs = np.sqrt(np.einsum("in,in->i", XT, XT))
     xs[xs == 0] = 1.0
-    Xs = X / xs
-    flat = Xs.reshape(n, n_set * p)
+    Xs = XT / xs[:, None]
     XF = np.zeros((fold.k + 1, n_set * p, q))
-    XX = np.zeros((fold.k + 1, n_set, p, p))
-    Xr = np.zeros((fold.k + 1, n_set * p))
     for a, b, j in zip(fold.starts, fold.stops, fold.slot, strict=True):
-        XF[j] += flat[a:b].T @ fold.F[a:b]
-        XX[j] += np.einsum("ngp,ngq->gpq", Xs[a:b], Xs[a:b])
-        Xr[j] += flat[a:b].T @ fold.r[a:b]
-    XF = XF.reshape(fold.k + 1, n_set, p, q).swapaxes(0, 1)
-    return XF, XX.swapaxes(0, 1), Xr.reshape(fold.k + 1, n_set, p).swapaxes(0, 1), xs
+        XF[j] += Xs[:, a:b] @ fold.F[a:b]
+    Xr = fold.run_sums(Xs * fold.r)  # (G p, K + 1)
+    X3 = Xs.reshape(n_set, p, -1)
+    XX = np.empty((fold.k + 1, n_set, p, p))
+    for u in range(p):
+        for v in range(u, p):
+            XX[:, :, u, v] = XX[:, :, v, u] = fold.run_sums(X3[:, u] * X3[:, v]).T
+    return (XF.reshape(fold.k + 1, n_set, p, q), XX, Xr.reshape(n_set, p, fold.k + 1).transpose(2, 0, 1),
+            xs.reshape(n_set, p))
 
 
 class _FixedSolve:
@@ -176,33 +185,40 @@ class _FixedSolve:
     def solve(self, XF: np.ndarray, XX: np.ndarray, Xr: np.ndarray) -> tuple[np.ndarray, ...]:
         """(beta_F, beta_X per fold; beta_F, beta_X on all data) for per-slot sums of G settings.
 
-        ``XF`` (G, K + 1, p, q), ``XX`` (G, K + 1, p, p), ``Xr`` (G, K + 1, p); the betas keep the leading G.
+        Slots first: ``XF`` (K + 1, G, p, q), ``XX`` (K + 1, G, p, p), ``Xr`` (K + 1, G, p); returns bF (K, G, q),
+        bX (K, G, p), bF1 (G, q), bX1 (G, p). The products with the fixed columns' (q, q) inverses are one
+        matrix product per fold for the whole batch.
         """
-        p = XX.shape[-1]
+        k1, g, p, q = XF.shape
+        k = k1 - 1
         eye = np.eye(p) * RIDGE
-        XF_all, XX_all, Xr_all = XF.sum(1), XX.sum(1), Xr.sum(1)
-        XF_tr, XX_tr, Xr_tr = XF_all[:, None] - XF[:, :-1], XX_all[:, None] - XX[:, :-1], Xr_all[:, None] - Xr[:, :-1]
-        A = XF_tr @ self.inv_tr  # (G, K, p, q)
-        S = XX_tr - A @ np.swapaxes(XF_tr, -1, -2)
-        rhs = Xr_tr - (A @ self.Fr_tr[..., None])[..., 0]
+        XF_all, XX_all, Xr_all = XF.sum(0), XX.sum(0), Xr.sum(0)
+        XF_tr, XX_tr, Xr_tr = XF_all - XF[:-1], XX_all - XX[:-1], Xr_all - Xr[:-1]
+        A = (XF_tr.reshape(k, g * p, q) @ self.inv_tr).reshape(k, g, p, q)
+        S = XX_tr - np.einsum("kgpq,kgrq->kgpr", A, XF_tr)
+        rhs = Xr_tr - (A.reshape(k, g * p, q) @ self.Fr_tr[:, :, None]).reshape(k, g, p)
         bX = np.linalg.solve(S + eye, rhs[..., None])[..., 0]
-        bF = self.b_tr - (np.swapaxes(A, -1, -2) @ bX[..., None])[..., 0]
-        A1 = XF_all @ self.inv_all  # (G, p, q)
-        bX1 = np.linalg.solve(XX_all - A1 @ np.swapaxes(XF_all, -1, -2) + eye,
-                              (Xr_all - A1 @ self.Fr_all)[..., None])[..., 0]
-        bF1 = self.b_all - (np.swapaxes(A1, -1, -2) @ bX1[..., None])[..., 0]
+        bF = self.b_tr[:, None, :] - np.einsum("kgpq,kgp->kgq", A, bX)
+        A1 = (XF_all.reshape(g * p, q) @ self.inv_all).reshape(g, p, q)
+        bX1 = np.linalg.solve(XX_all - np.einsum("gpq,grq->gpr", A1, XF_all) + eye,
+                              (Xr_all - (A1.reshape(g * p, q) @ self.Fr_all).reshape(g, p))[..., None])[..., 0]
+        bF1 = self.b_all - np.einsum("gpq,gp->gq", A1, bX1)
         return bF, bX, bF1, bX1
 
 
 def _sse(FF: np.ndarray, Fr: np.ndarray, rr: np.ndarray, XF: np.ndarray, XX: np.ndarray, Xr: np.ndarray,
          bF: np.ndarray, bX: np.ndarray) -> np.ndarray:
-    """SSE of r - F bF - X bX from Gram quantities (leading axes broadcast)."""
-    # matrix-vector products first (BLAS), then dot products: a three-operand einsum loops in C without BLAS
-    FFb = np.matmul(FF, bF[..., None])[..., 0]
-    XFb = np.matmul(XF, bF[..., None])[..., 0]
-    XXb = np.matmul(XX, bX[..., None])[..., 0]
-    return (rr - 2 * (np.sum(bF * Fr, axis=-1) + np.sum(bX * Xr, axis=-1))
-            + np.sum(bF * FFb, axis=-1) + 2 * np.sum(bX * XFb, axis=-1) + np.sum(bX * XXb, axis=-1))
+    """SSE of r - F bF - X bX from Gram quantities, per fold and setting: (K, G).
+
+    ``FF`` (K, q, q), ``Fr`` (K, q), ``rr`` (K,) of the fixed columns; ``XF`` (K, G, p, q), ``XX`` (K, G, p, p),
+    ``Xr`` (K, G, p), ``bF`` (K, G, q), ``bX`` (K, G, p) of the settings (one fold: K = 1).
+    """
+    FFb = FF @ np.swapaxes(bF, 1, 2)  # (K, q, G): one matrix product per fold, not one per setting
+    quad_f = np.einsum("kgq,kqg->kg", bF, FFb)
+    XFb = np.einsum("kgpq,kgq->kgp", XF, bF)
+    XXb = np.einsum("kgpr,kgr->kgp", XX, bX)
+    return (rr[:, None] - 2 * (np.einsum("kgq,kq->kg", bF, Fr) + np.sum(bX * Xr, axis=-1))
+            + quad_f + 2 * np.sum(bX * XFb, axis=-1) + np.sum(bX * XXb, axis=-1))
 
 
 def _quad(G: np.ndarray, h: np.ndarray, s: np.ndarray, beta: np.ndarray) -> np.ndarray:
@@ -239,21 +255,21 @@ def grid_scores(fold: Fold, designs: Sequence[np.ndarray], *, signs: Sequence[np
         per = max(1, BATCH_COLUMNS // p)
         for start in range(0, len(members), per):
             idx = members[start: start + per]
-            XF, XX, Xr, xs = _run_sums(fold, np.stack([designs[g] for g in idx], axis=1))
+            XF, XX, Xr, xs = _run_sums(fold, np.concatenate([designs[g].T for g in idx], axis=0), p)
             bF, bX, bF1, bX1 = fs.solve(XF, XX, Xr)
-            gf = bX / xs[:, None, :]
+            gf = np.swapaxes(bX, 0, 1) / xs[:, None, :]  # (G, K, p)
             ga = bX1 / xs
             sg = _per_regressor([signs[g] for g in idx] if signs else None, p, 0.0)
             lim = _per_regressor([limits[g] for g in idx] if limits else None, p, np.inf)
             ok_f = _admissible_batch(gf, sg, lim)
             ok_a = _admissible_batch(ga[:, None, :], sg, lim)[:, 0]
-            XF_all, XX_all, Xr_all = XF.sum(1), XX.sum(1), Xr.sum(1)
-            tr = _sse(fs.FF_tr, fs.Fr_tr, fs.rr_tr, XF_all[:, None] - XF[:, :-1], XX_all[:, None] - XX[:, :-1],
-                      Xr_all[:, None] - Xr[:, :-1], bF, bX)
-            train[idx] = np.where(ok_f, tr, np.inf)
-            held[idx] = _sse(fold.FF[:-1], fold.Fr[:-1], fold.rr[:-1], XF[:, :-1], XX[:, :-1], Xr[:, :-1], bF, bX)
-            full[idx] = np.where(ok_a, _sse(fs.FF_all, fs.Fr_all, fs.rr_all, XF_all, XX_all, Xr_all, bF1, bX1),
-                                 np.inf)
+            XF_all, XX_all, Xr_all = XF.sum(0), XX.sum(0), Xr.sum(0)
+            tr = _sse(fs.FF_tr, fs.Fr_tr, fs.rr_tr, XF_all - XF[:-1], XX_all - XX[:-1], Xr_all - Xr[:-1], bF, bX)
+            train[idx] = np.where(ok_f, tr.T, np.inf)
+            held[idx] = _sse(fold.FF[:-1], fold.Fr[:-1], fold.rr[:-1], XF[:-1], XX[:-1], Xr[:-1], bF, bX).T
+            one = _sse(fs.FF_all[None], fs.Fr_all[None], np.array([fs.rr_all]), XF_all[None], XX_all[None],
+                       Xr_all[None], bF1[None], bX1[None])[0]
+            full[idx] = np.where(ok_a, one, np.inf)
             for i, g in enumerate(idx):
                 gains_f[g] = gf[i]
                 gains_a[g] = ga[i]
