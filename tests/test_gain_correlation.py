@@ -105,3 +105,16 @@ def test_a_matrix_that_is_no_covariance_is_refused():
     with pytest.raises(ValueError, match=r"smallest eigenvalue is -0\.8: expected a correlation matrix"):
         GainCorrelation(inputs=("a", "b", "c"), matrix=tuple(map(tuple, bad)))
     assert math.isclose(GainCorrelation(inputs=("a", "b"), matrix=((1.0, -1.0), (-1.0, 1.0))).array()[0, 1], -1.0)
+
+
+def test_a_model_made_without_an_axis_or_input_keeps_the_correlation_of_the_rest(identified):
+    from dataclasses import replace
+
+    three = ThermalModel(axes=("y", "z"), factors=(*F, "feed"), units={}, reference={}, paths=dict(identified.paths),
+                         gain_correlation={"y": GainCorrelation(inputs=F, matrix=((1.0, 0.3), (0.3, 1.0))),
+                                           "z": GainCorrelation(inputs=(*F, "feed"), matrix=(
+                                               (1.0, -0.9, 0.1), (-0.9, 1.0, 0.0), (0.1, 0.0, 1.0)))})
+    z_only = replace(three, axes=("z",), factors=F, paths={k: v for k, v in three.paths.items()
+                                                           if k[0] == "z" and k[1] != "feed"})
+    assert list(z_only.gain_correlation) == ["z"]
+    assert z_only.gain_correlation["z"] == GainCorrelation(inputs=F, matrix=((1.0, -0.9), (-0.9, 1.0)))

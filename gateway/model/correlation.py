@@ -57,6 +57,16 @@ class GainCorrelation:
     def array(self) -> np.ndarray:
         return np.array(self.matrix, dtype=float)
 
+    def restricted(self, names: Sequence[str]) -> GainCorrelation | None:
+        """Only the inputs among ``names`` (itself when all are; None when fewer than two are left)."""
+        keep = [i for i, n in enumerate(self.inputs) if n in names]
+        if len(keep) == len(self.inputs):
+            return self
+        if len(keep) < 2:
+            return None
+        return GainCorrelation(inputs=tuple(self.inputs[i] for i in keep),
+                               matrix=tuple(tuple(self.matrix[i][j] for j in keep) for i in keep))
+
     def full(self, names: Sequence[str]) -> np.ndarray:
         """The correlation over every input in ``names`` (the identity where an input is not named)."""
         out = np.eye(len(names))

@@ -154,11 +154,15 @@ class ThermalModel:
         object.__setattr__(self, "reference",
                            MappingProxyType({f: float(self.reference.get(f, 0.0)) for f in self.factors}))
         object.__setattr__(self, "info", MappingProxyType(dict(self.info)))
+        # a model made from another by dropping axes or inputs keeps the correlation of what it still has (a
+        # part of a correlation matrix is one; a path not named is independent): files are checked at load
+        corr = {}
         for a, c in self.gain_correlation.items():
-            unknown = [n for n in c.inputs if n not in self.input_names]
-            if a not in self.axes or unknown:
-                raise ValueError(f"gain_correlation {a}: not an axis of the model or inputs unknown: {unknown}")
-        object.__setattr__(self, "gain_correlation", MappingProxyType(dict(self.gain_correlation)))
+            if a in self.axes:
+                c = c.restricted(self.input_names)
+                if c is not None:
+                    corr[a] = c
+        object.__setattr__(self, "gain_correlation", MappingProxyType(corr))
 
     def gain_correlation_matrix(self, axis: str) -> np.ndarray:
         """The correlation of ``axis``'s path gains over :attr:`input_names` (the identity where none is stored)."""
