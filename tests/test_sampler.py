@@ -158,7 +158,11 @@ def test_a_slow_device_skips_ticks_instead_of_queuing_them(tmp_path):
     assert d.reads_ok == d.ticks_run
     assert records[1].missed_ticks == d.ticks_expected - d.reads_ok
     assert sampler.ticks_skipped > 0
-    assert records[1].status == "good"  # each value stands for the ticks its read overran (up to 2.5)
+    # each value stands for the ticks its read overran (up to HOLD_TICKS = 2.5): the window's coverage is far
+    # above the share of ticks read (about 2/3 here; less on a loaded PC, where reads take longer still)
+    share = d.reads_ok / d.ticks_expected
+    assert records[1].coverage >= min(0.9, 1.2 * share), (records[1].coverage, share)  # counted: = share
+    assert records[1].status == ("good" if records[1].coverage >= profile.sampling.min_coverage else "insufficient")
 
 
 def test_a_device_dropped_mid_window_is_reported_and_recovered_while_the_other_keeps_sampling(tmp_path):
