@@ -80,8 +80,16 @@ class Fold:
         self.F = fixed / scale
         q = self.F.shape[1]
         self.FF = np.zeros((self.k + 1, q, q))
+        #: per contiguous run of a block: its rows, its slot, and the fixed columns not all zero in it (an
+        #: offset, a recording's nuisance or an input's lag is zero outside its recordings) with their rows
+        self.runs: list[tuple[int, int, int, np.ndarray | None, np.ndarray]] = []
         for a, b, j in zip(self.starts, self.stops, self.slot, strict=True):
             self.FF[j] += self.F[a:b].T @ self.F[a:b]
+            nz = np.flatnonzero(np.any(self.F[a:b] != 0.0, axis=0))
+            if len(nz) == q:
+                self.runs.append((int(a), int(b), int(j), None, self.F[a:b]))
+            else:
+                self.runs.append((int(a), int(b), int(j), nz, np.ascontiguousarray(self.F[a:b, nz])))
         self.Fr = self.sums(self.F * r[:, None])
         self.rr = self.sums(r * r)
         self._solver: _FixedSolve | None = None
@@ -147,8 +155,21 @@ def _run_sums(fold: Fold, XT: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarra
     xs[xs == 0] = 1.0
     Xs = XT / xs[:, None]
     XF = np.zeros((fold.k + 1, n_set * p, q))
-    for a, b, j in zip(fold.starts, fold.stops, fold.slot, strict=True):
-        XF[j] += Xs[:, a:b] @ fold.F[a:b]
+    for a, b, j, nz, Fb in fold.runs:  # columns (fixed or the settings') that are zero in a run add nothing
+        Xb = Xs[:, a:b]
+        moving = np.flatnonzero(np.any(Xb != 0.0, axis=1))
+        if len(moving) < 0.8 * len(Xb):
+            if not len(moving):
+                continue
+            part = Xb[moving] @ Fb
+            if nz is None:
+                XF[j][moving] += part
+            else:
+                XF[j][np.ix_(moving, nz)] += part
+        elif nz is None:
+            XF[j] += Xb @ Fb
+        else:
+            XF[j][:, nz] += Xb @ Fb
     Xr = fold.run_sums(Xs * fold.r)  # (G p, K + 1)
     X3 = Xs.reshape(n_set, p, -1)
     XX = np.empty((fold.k + 1, n_set, p, p))
