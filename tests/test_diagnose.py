@@ -353,3 +353,42 @@ def test_a_term_that_moves_an_axis_more_than_it_moved_is_not_physics():
     assert _judge(cancels, Options()).startswith("significant but on no axis relevant")
     assert cancels.axes == ()
     assert "exceeds the axis's whole measured displacement (peak 19 um)" in cancels.evidence["y"].note
+
+
+def test_grid_scores_are_those_of_a_fit_on_the_other_blocks():
+    """Every setting's held-out SSE is what refitting on the other blocks and predicting the block gives.
+
+    Batched by width (0, 1 and 2 regressors), with columns zero in whole recordings (skipped per block run)
+    and a sign rule that makes a fold inadmissible, against a plain least-squares fit per fold.
+    """
+    from gateway.diagnose.select import Fold, grid_scores
+
+    rng = np.random.default_rng(3)
+    bounds = [(0, 240), (240, 420), (420, 600)]
+    n = 600
+    block = make_blocks(bounds, np.ones(n, dtype=bool), 8)
+    t = np.arange(n, dtype=float)
+    offsets = [np.where((t >= a) & (t < b), 1.0, 0.0) for a, b in bounds]
+    drift = np.where(t >= 240, np.sin(t / 50.0), 0.0)  # zero in the first recording
+    fixed = np.column_stack([*offsets, drift])
+    lag = np.where(t < 420, 1.0 - np.exp(-t / 80.0), 0.0)  # zero in the last recording
+    wave = np.cos(t / 30.0)
+    r = 2.0 * lag + 0.5 * drift + offsets[1] + 0.05 * rng.standard_normal(n)
+    designs = [lag[:, None], wave[:, None], np.column_stack([lag, wave]), np.zeros((n, 0)), -lag[:, None]]
+    signs = [np.array([1.0]), np.array([0.0]), np.array([0.0, 0.0]), np.zeros(0), np.array([1.0])]
+    scores = grid_scores(Fold(r=r, block=block, fixed=fixed), designs, signs=signs)
+    k = int(block.max()) + 1
+    for g, X in enumerate(designs):
+        for f in range(k):
+            train, held = block != f, block == f
+            D = np.column_stack([fixed, X])
+            beta = np.linalg.lstsq(D[train], r[train], rcond=None)[0]
+            assert scores.held[g, f] == pytest.approx(float(np.sum((r[held] - D[held] @ beta) ** 2)), rel=1e-6)
+            if X.shape[1]:
+                assert scores.gains_fold[g][f] == pytest.approx(beta[fixed.shape[1]:], rel=1e-5, abs=1e-6)
+        beta = np.linalg.lstsq(np.column_stack([fixed, X]), r, rcond=None)[0]
+        assert scores.full[g] == pytest.approx(float(np.sum((r - np.column_stack([fixed, X]) @ beta) ** 2)),
+                                               rel=1e-6) if g != 4 else scores.full[g] == np.inf
+    assert scores.gains_all[0][0] == pytest.approx(2.0, abs=0.05)
+    assert np.all(np.isinf(scores.train[4]))  # -lag needs a negative gain: its sign rule fails in every fold
+    assert np.all(np.isfinite(scores.train[:4]))

@@ -206,3 +206,33 @@ def test_a_second_order_at_the_fast_time_constant_floor_loads_again():
         model = ThermalModel(axes=("x",), factors=("speed",), units={}, reference={},
                              paths={("x", "speed"): PathTF(axis="x", factor="speed", terms=terms)})
         assert model_problems(model) == [], slow
+
+
+def test_extra_columns_projected_out_once_give_the_full_least_squares():
+    """Gains, extra gains, offsets and residual of the projected solve equal one least squares on everything."""
+    from dataclasses import replace
+
+    from gateway.identify.joint import AxisProblem
+
+    recs = [make_recording(FIRST_ORDER_PLANT, experiment(lv, total=360), name=f"e{k}", noise_um=0.1, seed=50 + k)
+            for k, lv in enumerate(PAPER_DESIGN)]
+    es = ExperimentSet.from_prepared([prepare(r, factors=F, axes=("x", "z")) for r in recs], factors=F,
+                                     axes=("x", "z"))
+    e, m = es.n_exp, es.du.shape[2]
+    ramp = np.broadcast_to(np.linspace(0.0, 1.0, m), (e, m)) * (np.arange(e) == 1)[:, None]  # one experiment's drift
+    wave = np.broadcast_to(np.sin(np.arange(m) / 40.0), (e, m))
+    es = replace(es, extra=np.stack([ramp, wave]), extra_names=("ramp", "wave"))
+    problem = AxisProblem(es, 1)
+    structures = ["first_order"] * 3 + ["zero"] * 2
+    thetas = [[np.log(2400.0)], [np.log(1500.0)], [np.log(900.0)], [], []]
+    paths = np.column_stack([c for j, s in enumerate(structures) if s != "zero"
+                             for c in problem.path_columns(j, s, thetas[j])])
+    coef, resid, _ = problem.solve(paths)
+    design = np.column_stack([paths, problem.extra, problem.offset_cols])
+    full, *_ = np.linalg.lstsq(design, problem.y, rcond=None)
+    expected = problem.y - design @ full
+    assert coef == pytest.approx(full, rel=1e-6, abs=1e-9)
+    assert float(resid @ resid) == pytest.approx(float(expected @ expected), rel=1e-9)
+    fit = problem.fit(structures, thetas)
+    assert fit.extra_gains.shape == (2,)
+    assert fit.rss == pytest.approx(float(np.nansum(np.concatenate(fit.residuals) ** 2)), rel=1e-9)
