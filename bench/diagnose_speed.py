@@ -6,7 +6,8 @@
 
 Per case (an effect and plant variant of bench/diagnose.py's new protocol: the nine identification
 experiments and four production days, the effect acting in all of them), the recordings are simulated once
-(cached like bench/diagnose.py's), the baseline model is identified once with this tree, and then
+(cached like bench/diagnose.py's), the baseline model is identified once with the baseline revision (a
+newer tree reads an older model file, not always the reverse), and then
 ``cncgw diagnose --model baseline exp*.csv day*.csv`` runs in a fresh process per source tree: the baseline
 revision (``git archive REV``, default ``main``) and this working tree, one after the other, each holding
 BLAS to one thread. The CPU seconds of that process during the diagnosis (``time.process_time``) are
@@ -28,7 +29,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from bench.diagnose import PROFILE, diagnosis_names, new_plan, record, run_cli  # noqa: E402
+from bench.diagnose import PROFILE, diagnosis_names, new_plan, record  # noqa: E402
 
 ONE_THREAD = {v: "1" for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 #: run in a fresh interpreter with the tree to time first on its path; prints its CPU seconds
@@ -52,13 +53,13 @@ def baseline_tree(rev: str, into: Path) -> Path:
     return into
 
 
-def timed_diagnose(tree: Path, args: list[str]) -> float:
-    """``cncgw diagnose ARGS`` with the sources of ``tree``, in a fresh process; its CPU seconds."""
-    proc = subprocess.run([sys.executable, "-c", CHILD, str(tree), "diagnose", *args], capture_output=True,
+def timed_cli(tree: Path, args: list[str]) -> float:
+    """``cncgw ARGS`` with the sources of ``tree``, in a fresh process; its CPU seconds."""
+    proc = subprocess.run([sys.executable, "-c", CHILD, str(tree), *args], capture_output=True,
                           text=True, env={**os.environ, "PYTHONPATH": str(tree), **ONE_THREAD})
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("CPU_S")]
     if proc.returncode != 0 or not lines or lines[-1].split()[2] != "0":
-        raise RuntimeError(f"diagnose with {tree} failed: {proc.stderr.strip()[-800:]}")
+        raise RuntimeError(f"cncgw {args[0]} with {tree} failed: {proc.stderr.strip()[-800:]}")
     return float(lines[-1].split()[1])
 
 
@@ -131,13 +132,14 @@ def main() -> int:
             case_dir.mkdir(parents=True, exist_ok=True)
             model = case_dir / "sim-vmc.model.toml"
             if not model.is_file():  # a kept one is reused: both trees diagnose the same model
-                run_cli(["identify", "--profile", PROFILE, *exps, "-o", model])
+                # identified by the baseline: a newer tree reads an older model file, not always the reverse
+                timed_cli(old_tree, ["identify", "--profile", str(PROFILE), *map(str, exps), "-o", str(model)])
             cpu, dec = {}, {}
             for key, tree in trees.items():
                 out = case_dir / key
                 diag_args = ["--profile", str(PROFILE), "--model", str(model), *map(str, exps), *map(str, days),
                              "-o", str(out), "--force"]
-                cpu[key] = min(timed_diagnose(tree, diag_args) for _ in range(max(1, args.repeat)))
+                cpu[key] = min(timed_cli(tree, ["diagnose", *diag_args]) for _ in range(max(1, args.repeat)))
                 dec[key] = decisions(out)
                 totals[key] += cpu[key]
             same, worst, diffs = compare_decisions(dec["baseline"], dec["this"])
