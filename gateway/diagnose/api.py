@@ -22,6 +22,7 @@ from gateway import __version__
 from gateway.diagnose.adequacy import Adequacy, assess
 from gateway.diagnose.compare import Comparison, compare
 from gateway.diagnose.data import Stack, build_stack, recording_label
+from gateway.diagnose.explain import Explanation, explain
 from gateway.diagnose.extend import extend_model
 from gateway.diagnose.hypotheses import FactorInfo, Hypothesis, catalogue
 from gateway.diagnose.locate import (
@@ -85,6 +86,8 @@ class Diagnosis:
     comparison: Comparison
     reidentified: Reidentified | None
     block: np.ndarray
+    #: when more data alone won: what the re-identified paths changed, and the physics that explains it
+    explanation: Explanation | None = None
     conclusions: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     wall_s: float = 0.0
@@ -181,23 +184,31 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
                               artefacts=artefacts, progress=progress)
         comparison = compare(stack, model, block, [t for t in results["frozen"].accepted if writable(t)], frozen,
                              reid, artefacts=artefacts, options=options)
-    result = results["refit"] if comparison.chosen == "reidentified" else results["frozen"]
+        explanation = None
+        if reid is not None and comparison.chosen == "reidentified" and not any(reid.terms.values()):
+            # more data alone won: which physics reproduces what the re-identified paths changed?
+            explanation = explain(stack, model, reid, comparison, hyps, block=block, artefacts=artefacts,
+                                  options=sub, writable=writable, progress=progress)
+    result = {"reidentified": results["refit"], "explained": explanation.result if explanation else None
+              }.get(comparison.chosen) or results["frozen"]
     on = [(t, f"{t.hypothesis.key} on {', '.join(t.axes)}") for t in result.accepted]
     record = {"cncgw_version": __version__, "recordings": list(stack.names), "written": comparison.chosen,
               "accepted": [text for t, text in on if not t.hypothesis.artefact] if comparison.chosen != "identified"
               else [],
+              "explained": explanation.names if explanation is not None else [],
+              "paths_changed": explanation.changes if explanation is not None else [],
               "artefacts_excluded": [text for t, text in on if t.hypothesis.artefact]
               + [f"step on {s.axis} at {s.time_h:.2f} h in {s.recording}" for f in findings.values() for s in f.steps]}
     extended = comparison.written.model
     if comparison.chosen == "identified":
         extended = model
     else:
-        extended = _supported_region(extended, recordings, reidentified=comparison.chosen == "reidentified",
+        extended = _supported_region(extended, recordings, reidentified=comparison.chosen != "terms",
                                      gap_policy=gap_policy)
     extended = replace(extended, info={**extended.info, "diagnosis": record})
     diag = Diagnosis(model=model, extended=extended, stack=stack, findings=findings, hypotheses=hyps, result=result,
                      results=results, options=options, adequacy=adequacy, comparison=comparison, reidentified=reid,
-                     block=block, notes=list(stack.notes))
+                     block=block, notes=list(stack.notes), explanation=explanation)
     diag.conclusions = conclusions(diag, block)
     if options.reidentify and missing:
         which = ("the model names no identification experiments" if missing == [NONE_NAMED] else
@@ -251,7 +262,9 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
     physics = [t for t in d.result.accepted if not t.hypothesis.artefact]
     cands = d.comparison.candidates
     written = d.comparison.written
-    how = " with every path refitted beside it" if d.comparison.chosen == "reidentified" else ""
+    how = {"reidentified": " with every path refitted beside it",
+           "explained": " with the paths held at the identified time constants, their gains refitted"
+           }.get(d.comparison.chosen, "")
     for t in physics:
         gain = ", ".join(f"{a} {100 * t.evidence[a].gain:.0f} %" for a in t.axes)
         if t.hypothesis.signal and t.hypothesis.signal not in d.options.use_signals:
@@ -280,10 +293,23 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
             out.append("nothing significant is missing: no physical hypothesis lowered the held-out error "
                        "significantly (family-wise) and by a relevant amount, and re-identifying on all recordings "
                        "does not predict better")
-    elif not physics:
+    elif not physics and not (d.explanation and d.explanation.named):
         out.append("no missing physics is named, but the model identified again on all recordings predicts the "
                    "held-out blocks better: the identification experiments did not pin its paths down (too little "
                    "excitation, or a disturbance during them); the re-identified model is written")
+    ex = d.explanation
+    if ex is not None:
+        changed = "; ".join(ex.changes) or "its gains, no time constant by more than 25 %"
+        if ex.named and written.key == "reidentified":
+            out.append(f"what more data changed in the paths ({changed}) is explained by "
+                       f"{'; '.join(t.hypothesis.title for t in ex.named)} (named: {ex.verdict}); the re-identified "
+                       "model predicts the held-out data better and is written")
+        elif ex.named:
+            out.append(f"what more data changed in the paths ({changed}) is explained by "
+                       f"{'; '.join(t.hypothesis.title for t in ex.named)}: {ex.verdict}")
+        else:
+            out.append(f"more data changed the paths ({changed}); no hypothesis explains the change with the paths "
+                       f"held at the identified time constants ({ex.verdict}): no family is named")
     if not physics:
         tried = [t for t in d.result.trials if t.round == 1 and not t.hypothesis.artefact]
         # ranked by evidence; "closest" only for one that predicted the held-out blocks better than nothing

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -67,6 +67,8 @@ class Comparison:
     candidates: dict[str, Candidate]
     chosen: str
     scheme: str = ""  # what was held out, in words
+    folds: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))  # what each window's fit leaves out
+    score: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))  # the scored block of each window
 
     @property
     def written(self) -> Candidate:
@@ -80,10 +82,8 @@ def compare(stack: Stack, model: ThermalModel, block: np.ndarray, accepted: Sequ
 
     ``accepted``: what the frozen search accepted and may be written (``extended`` is the model with them).
     """
-    offsets = stack.per_recording()
     physics = [t for t in accepted if not t.hypothesis.artefact]
     folds, score, scheme = _scheme(stack, model, block, options)
-    k = int(score.max()) + 1 if (score >= 0).any() else 0
     cands: dict[str, Candidate] = {}
     specs: list[tuple[str, str, ThermalModel]] = [("identified", "the identified model as it is", model)]
     if physics:
@@ -96,67 +96,18 @@ def compare(stack: Stack, model: ThermalModel, block: np.ndarray, accepted: Sequ
     # the re-identified model is identified again without each fold: its time constants were chosen on all data
     nested = held_out_reidentified(stack, model, reid, folds, block, artefacts=artefacts) if reid is not None else {}
     for key, title, m in specs:
-        pred, sse, metrics = {}, np.zeros(k), {}
-        for i, a in enumerate(stack.axes):
-            ok = (folds != -1) & np.isfinite(stack.y[i])
-            rows = np.flatnonzero(ok)
-            if len(rows) < 8 or k == 0:
-                continue
-            if key == "reidentified":
-                # identified again without each fold (refit.held_out_reidentified): no gains refitted here
-                assert reid is not None
-                if a not in nested:
-                    continue
-                shift = reid.fixed[a][rows]
-                target = stack.y[i][rows] - shift
-                p = nested[a][rows] - shift
-            else:
-                zeros = []  # each recording's offset column and its first block, where its zero is taken
-                cols = []
-                for c in offsets:
-                    if np.any(c[rows]):
-                        zeros.append((len(cols), ((c != 0) & (block == BURN_IN))[rows]))
-                        cols.append(c[rows])
-                cols += [c[rows] for c in artefacts.get(a, [])]
-                target = (stack.y[i] - stack.base[i])[rows]
-                shift = stack.base[i][rows]
-                if key == "terms":
-                    for t in physics:
-                        e = t.evidence.get(a)
-                        if e is not None and e.included and e.setting is not None:
-                            cols += [c[rows] for c in setting_columns(stack, e.setting)[0]]
-                p = held_out(target, folds[rows], cols, zeros=zeros)
-            err = target - p
-            sc = score[rows]
-            for f in range(k):
-                sse[f] += float(np.sum(err[sc == f] ** 2))
-            full = np.full(stack.n, np.nan)
-            full[rows] = np.where(sc >= 0, p + shift, np.nan)
-            pred[a] = full
-        cands[key] = Candidate(key=key, title=title, model=m, prediction=pred, block_sse=sse, metrics=metrics)
-    # the peak is the measured displacement's, offset by what the identified model's scoring took as the zero
+        extra: dict[str, list[np.ndarray]] = {}
+        if key == "terms":
+            for a in stack.axes:
+                extra[a] = [c for t in physics for e in [t.evidence.get(a)]
+                            if e is not None and e.included and e.setting is not None
+                            for c in setting_columns(stack, e.setting)[0]]
+        cands[key] = _candidate(stack, block, folds, score, key=key, title=title, model=m, extra=extra,
+                                artefacts=artefacts, nested=nested if key == "reidentified" else None, reid=reid)
     base = cands["identified"]
-    for i, a in enumerate(stack.axes):
-        if a not in base.prediction:
-            continue
-        held = np.isfinite(base.prediction[a])
-        zero = base.prediction[a][held] - stack.base[i][held]
-        measured = stack.y[i][held] - zero
-        for c in cands.values():
-            err = stack.y[i][held] - c.prediction[a][held]
-            c.metrics[a] = AxisFigures.of(a, err, measured)
     for c in cands.values():
-        if c is base:
-            c.passes, c.verdict = True, "the reference"
-            continue
-        c.p = one_sided_p(_informative(base.block_sse, c.block_sse))
-        c.gain = 1.0 - c.sse / base.sse if base.sse > 0 else 0.0
-        if not c.p < options.alpha:
-            c.verdict = f"not consistently better over the blocks (p = {c.p:.2g})"
-        elif c.gain < options.min_gain:
-            c.verdict = f"held-out squared error down only {100 * c.gain:.0f} % (< {100 * options.min_gain:.0f} %)"
-        else:
-            c.passes, c.verdict = True, f"passes: held-out squared error down {100 * c.gain:.0f} % (p = {c.p:.2g})"
+        _figures(stack, base, c)
+        _judge(base, c, options)
     chosen = "identified"
     passing = [c for c in cands.values() if c.passes and c is not base]
     if passing:
@@ -170,7 +121,94 @@ def compare(stack: Stack, model: ThermalModel, block: np.ndarray, accepted: Sequ
     for c in cands.values():
         if c.key == chosen and c is not base:
             c.verdict += "; written"
-    return Comparison(candidates=cands, chosen=chosen, scheme=scheme)
+    return Comparison(candidates=cands, chosen=chosen, scheme=scheme, folds=folds, score=score)
+
+
+def _candidate(stack: Stack, block: np.ndarray, folds: np.ndarray, score: np.ndarray, *, key: str, title: str,
+               model: ThermalModel, extra: Mapping[str, Sequence[np.ndarray]],
+               artefacts: Mapping[str, Sequence[np.ndarray]], nested: Mapping[str, np.ndarray] | None = None,
+               reid: Reidentified | None = None) -> Candidate:
+    """One candidate's held-out predictions and block SSE on the comparison's folds.
+
+    ``nested``: the re-identified model's predictions, identified again per fold (no gains refitted here);
+    else each recording's offset, the artefacts and ``extra`` columns (per axis) are refitted per fold around
+    the model's own prediction.
+    """
+    offsets = stack.per_recording()
+    k = int(score.max()) + 1 if (score >= 0).any() else 0
+    pred, sse = {}, np.zeros(k)
+    for i, a in enumerate(stack.axes):
+        ok = (folds != -1) & np.isfinite(stack.y[i])
+        rows = np.flatnonzero(ok)
+        if len(rows) < 8 or k == 0:
+            continue
+        if nested is not None:
+            assert reid is not None
+            if a not in nested:
+                continue
+            shift = reid.fixed[a][rows]
+            target = stack.y[i][rows] - shift
+            p = nested[a][rows] - shift
+        else:
+            zeros = []  # each recording's offset column and its first block, where its zero is taken
+            cols = []
+            for c in offsets:
+                if np.any(c[rows]):
+                    zeros.append((len(cols), ((c != 0) & (block == BURN_IN))[rows]))
+                    cols.append(c[rows])
+            cols += [c[rows] for c in artefacts.get(a, [])]
+            cols += [c[rows] for c in extra.get(a, [])]
+            target = (stack.y[i] - stack.base[i])[rows]
+            shift = stack.base[i][rows]
+            p = held_out(target, folds[rows], cols, zeros=zeros)
+        err = target - p
+        sc = score[rows]
+        for f in range(k):
+            sse[f] += float(np.sum(err[sc == f] ** 2))
+        full = np.full(stack.n, np.nan)
+        full[rows] = np.where(sc >= 0, p + shift, np.nan)
+        pred[a] = full
+    return Candidate(key=key, title=title, model=model, prediction=pred, block_sse=sse, metrics={})
+
+
+def _figures(stack: Stack, base: Candidate, c: Candidate) -> None:
+    """``c``'s metrics per axis; the peak is the measured displacement's, offset by the zero ``base`` took."""
+    for i, a in enumerate(stack.axes):
+        if a not in base.prediction or a not in c.prediction:
+            continue
+        held = np.isfinite(base.prediction[a])
+        zero = base.prediction[a][held] - stack.base[i][held]
+        measured = stack.y[i][held] - zero
+        err = stack.y[i][held] - c.prediction[a][held]
+        c.metrics[a] = AxisFigures.of(a, err, measured)
+
+
+def _judge(base: Candidate, c: Candidate, options: Options) -> None:
+    """Whether ``c`` predicts consistently and relevantly better than ``base`` (the identified model)."""
+    if c is base:
+        c.passes, c.verdict = True, "the reference"
+        return
+    c.p = one_sided_p(_informative(base.block_sse, c.block_sse))
+    c.gain = 1.0 - c.sse / base.sse if base.sse > 0 else 0.0
+    if not c.p < options.alpha:
+        c.verdict = f"not consistently better over the blocks (p = {c.p:.2g})"
+    elif c.gain < options.min_gain:
+        c.verdict = f"held-out squared error down only {100 * c.gain:.0f} % (< {100 * options.min_gain:.0f} %)"
+    else:
+        c.passes, c.verdict = True, f"passes: held-out squared error down {100 * c.gain:.0f} % (p = {c.p:.2g})"
+
+
+def score_linear(comparison: Comparison, stack: Stack, block: np.ndarray, *, key: str, title: str,
+                 model: ThermalModel, extra: Mapping[str, Sequence[np.ndarray]],
+                 artefacts: Mapping[str, Sequence[np.ndarray]], options: Options) -> Candidate:
+    """Another candidate scored like ``terms`` on ``comparison``'s folds (``extra``: its columns per axis), added."""
+    c = _candidate(stack, block, comparison.folds, comparison.score, key=key, title=title, model=model, extra=extra,
+                   artefacts=artefacts)
+    base = comparison.candidates["identified"]
+    _figures(stack, base, c)
+    _judge(base, c, options)
+    comparison.candidates[key] = c
+    return c
 
 
 def _scheme(stack: Stack, model: ThermalModel, block: np.ndarray, options: Options) -> tuple[np.ndarray, np.ndarray,

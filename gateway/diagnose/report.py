@@ -83,6 +83,8 @@ def to_json(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = "",
         "accepted": [t.hypothesis.key for t in d.result.accepted if not t.hypothesis.artefact],
         "artefacts": d.artefacts,
         "written": d.comparison.chosen,
+        "explained": d.explanation.names if d.explanation is not None else [],
+        "paths_changed": d.explanation.changes if d.explanation is not None else [],
         "candidates": {k: {"title": c.title, "passes": c.passes, "verdict": c.verdict, "p": c.p, "gain_share": c.gain,
                            "held_out_sse_um2": c.sse, "metrics": metrics(c.metrics)}
                        for k, c in d.comparison.candidates.items()},
@@ -113,6 +115,8 @@ def written_terms(d: Diagnosis) -> dict[str, list[Term]]:
         return d.reidentified.terms
     if d.comparison.chosen == "terms":
         return d.result.terms
+    if d.comparison.chosen == "explained" and d.explanation is not None:
+        return d.explanation.terms
     return {}
 
 

@@ -20,7 +20,7 @@ significantly.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -197,7 +197,7 @@ class _Axis:
 
 def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
            artefacts: dict[str, list[np.ndarray]], options: Options,
-           corrections: Sequence[np.ndarray] = (),
+           corrections: Sequence[np.ndarray] | Mapping[str, Sequence[np.ndarray]] = (),
            progress: Callable[[str], None] | None = None) -> SearchResult:
     """Forward selection over all axes; ``block`` gives each window's block (-1: not used).
 
@@ -205,6 +205,7 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
     hypothesis, in and out of it alike: the model's paths refitted (see :func:`path_corrections`), so a
     hypothesis is judged by what it adds to a re-identified model. Its own "gain correction" of a path
     is then dropped: the corrections span it, and two collinear columns make neither gain meaningful.
+    A mapping gives each axis its own corrections (its identified paths, :mod:`gateway.diagnose.explain`).
     """
     if corrections:
         hypotheses = [without_path_corrections(h) for h in hypotheses]
@@ -229,7 +230,8 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
         r = (stack.y[i] - stack.base[i])[rows]
         arts = [c for c in artefacts.get(name, [])]
         fixed = [c[rows] for c in offsets if np.any(c[rows])] + [c[rows] for c in arts]
-        fixed += [c[rows] for c in corrections if np.any(c[rows])]
+        own = corrections.get(name, []) if isinstance(corrections, Mapping) else corrections
+        fixed += [c[rows] for c in own if np.any(c[rows])]
         axes.append(_Axis(i, name, rows, r, block[rows], fixed, relevance, arts, peak_um=peaks.get(i, math.inf)))
     trials: list[Trial] = []
     accepted: list[Trial] = []

@@ -1,0 +1,185 @@
+"""When more data alone wins: which physics explains what the re-identified paths changed.
+
+Re-identified on every recording, the model's paths absorb much of a concealed effect (a path's slow mode
+stretches towards the experiments' length; the motor-current paths together span the cabinet's sum of
+currents^2): it predicts better, and nothing is named. So, once the re-identified model without a new term
+is the best, the question is asked again with the paths held to what the identification experiments
+determined (each identified term at its time constants, its gain free): each hypothesis is judged, as in
+the other searches, by what it adds to those held paths. One that passes there, and whose model (held paths
+and the term) predicts the held-out recordings about as well as the unconstrained re-identification (that
+one not significantly better over the blocks), explains the change and is named. The report says what the
+re-identified paths changed either way; when nothing explains it, it says that more data changed the paths.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from gateway.diagnose.compare import Candidate, Comparison, _informative, score_linear
+from gateway.diagnose.data import Stack
+from gateway.diagnose.extend import extend_model
+from gateway.diagnose.hypotheses import Hypothesis
+from gateway.diagnose.refit import Reidentified, final_gains, unit_columns
+from gateway.diagnose.search import Options, SearchResult, Term, Trial, search, setting_columns
+from gateway.diagnose.select import one_sided_p
+from gateway.model.model import PathTF, ThermalModel
+
+KEY = "explained"
+
+
+@dataclass(kw_only=True)
+class Explanation:
+    """What the re-identified paths changed, and the physics (if any) that reproduces it with the paths held."""
+
+    changes: list[str]  # per axis, the re-identified paths' largest structural change, in words
+    result: SearchResult | None = None  # the search with the paths held
+    named: list[Trial] = field(default_factory=list)  # what explains the change (passed every check)
+    candidate: Candidate | None = None  # the held paths with the named terms, scored on the comparison's folds
+    terms: dict[str, list[Term]] = field(default_factory=dict)  # the named terms as the candidate's model has them
+    verdict: str = ""
+
+    @property
+    def names(self) -> list[str]:
+        return [f"{t.hypothesis.key} on {', '.join(t.axes)}" for t in self.named]
+
+
+def held_paths(model: ThermalModel, axis: str) -> list[PathTF]:
+    """The identified paths of the factors on ``axis`` that have terms: what the experiments determined."""
+    return [p for p in (model.path(axis, f) for f in model.factors) if p.terms]
+
+
+def held_corrections(stack: Stack, model: ThermalModel) -> dict[str, list[np.ndarray]]:
+    """Per axis, every identified term of the factors' paths at unit gain: the paths, time constants held."""
+    return {a: unit_columns(stack, held_paths(model, a)) for a in model.axes}
+
+
+def slowest(model: ThermalModel, axis: str) -> tuple[float, str]:
+    """The slowest time constant of the factors' paths on ``axis`` and its factor (0 when none)."""
+    best = (0.0, "")
+    for p in held_paths(model, axis):
+        for term in p.terms:
+            for t in term.time_constants_s:
+                if t > best[0]:
+                    best = (t, p.factor)
+    return best
+
+
+def path_changes(model: ThermalModel, reid: ThermalModel) -> list[str]:
+    """Per axis, in words, what re-identification changed: the slowest time constant, paths gained or lost."""
+    out = []
+    for a in model.axes:
+        t0, f0 = slowest(model, a)
+        t1, f1 = slowest(reid, a)
+        parts = []
+        if t0 > 0 and t1 > 0 and abs(math.log(t1 / t0)) > math.log(1.25):
+            parts.append(f"slowest time constant {_h(t0)} ({f0}) -> {_h(t1)} ({f1})")
+        before = {p.factor for p in held_paths(model, a)}
+        after = {p.factor for p in held_paths(reid, a)}
+        if after - before:
+            parts.append(f"new paths from {', '.join(sorted(after - before))}")
+        if before - after:
+            parts.append(f"paths from {', '.join(sorted(before - after))} dropped")
+        if parts:
+            out.append(f"{a}: {'; '.join(parts)}")
+    return out
+
+
+def _h(t: float) -> str:
+    return f"{t / 60:.3g} min" if t < 5400 else f"{t / 3600:.3g} h"
+
+
+def explain(stack: Stack, model: ThermalModel, reid: Reidentified, comparison: Comparison, hyps: Sequence[Hypothesis],
+            *, block: np.ndarray, artefacts: Mapping[str, Sequence[np.ndarray]], options: Options,
+            writable: Callable[[Trial], bool],
+            progress: Callable[[str], None] | None = None) -> Explanation:
+    """Ask which physics reproduces what the re-identification changed (see the module docstring).
+
+    Adds the candidate ``explained`` to ``comparison`` when a hypothesis passes the held search; it is
+    written (``comparison.chosen``) when it is named and predicts the held-out data no worse than the
+    re-identified model.
+    """
+    out = Explanation(changes=path_changes(model, reid.model))
+    held = held_corrections(stack, model)
+    physics = [h for h in hyps if not h.artefact]
+    result = search(stack, physics, block=block, artefacts=dict(artefacts), options=options, corrections=held,
+                    progress=(lambda m: progress(f"held: {m}")) if progress else None)
+    out.result = result
+    accepted = [t for t in result.accepted if writable(t)]
+    if not accepted:
+        out.verdict = "no hypothesis adds to the paths held at the identified time constants"
+        return out
+    extra = {}
+    for a in stack.axes:
+        cols = list(held.get(a, []))
+        for t in accepted:
+            e = t.evidence.get(a)
+            if e is not None and e.included and e.setting is not None:
+                cols += setting_columns(stack, e.setting)[0]
+        extra[a] = cols
+    m, out.terms = held_model(stack, model, accepted, artefacts=artefacts)
+    title = ("the paths held at the identified time constants (gains refitted on all recordings) with "
+             + "; ".join(t.hypothesis.title for t in accepted))
+    cand = score_linear(comparison, stack, block, key=KEY, title=title, model=m, extra=extra, artefacts=artefacts,
+                        options=options)
+    out.candidate = cand
+    reid_c = comparison.candidates["reidentified"]
+    p_reid = one_sided_p(_informative(cand.block_sse, reid_c.block_sse))
+    if not cand.passes:
+        out.verdict = ("the named terms with the paths held do not predict better than the identified model "
+                       f"({cand.verdict})")
+    elif p_reid < options.alpha:
+        out.verdict = (f"the re-identified paths predict significantly better than the named terms with the paths held "
+                       f"(p = {p_reid:.2g}): they changed more than these terms explain")
+        cand.verdict += f"; the re-identified model is significantly better (p = {p_reid:.2g})"
+    else:
+        out.named = accepted
+        out.verdict = (f"the re-identified model is not significantly better (p = {p_reid:.2g}): "
+                       f"{'; '.join(t.hypothesis.title for t in accepted)} explains the change")
+        if cand.sse <= reid_c.sse:
+            comparison.chosen = KEY
+            reid_c.verdict = reid_c.verdict.removesuffix("; written")
+            cand.verdict += "; no worse than the re-identified model: written"
+    return out
+
+
+def held_model(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
+               artefacts: Mapping[str, Sequence[np.ndarray]]) -> tuple[ThermalModel, dict[str, list[Term]]]:
+    """The identified paths at their time constants, gains refitted on all recordings, with the terms."""
+    factors = model.factors
+    derived = [j for j, name in enumerate(model.input_names) if name not in factors]
+    frozen = stack.contributions[:, derived, :].sum(axis=1) if derived else np.zeros_like(stack.base)
+    paths: list[PathTF] = []
+    terms: dict[str, list[Term]] = {}
+    for i, a in enumerate(model.axes):
+        if not np.isfinite(stack.y[i]).any():
+            continue
+        hp = held_paths(model, a)
+        phys, kept = [], []
+        for t in accepted:
+            e = t.evidence.get(a)
+            if e is None or not e.included or e.setting is None:
+                continue
+            comps = tuple(c for c in e.setting.components if not c.corrects)
+            setting = replace(e.setting, components=comps, signs=(), limits=())
+            kept.append((t, setting))
+            phys += [stack.column(c, setting.chain) for c in comps]
+        cols = unit_columns(stack, hp) + phys
+        g = final_gains(stack.y[i] - frozen[i], cols, stack.per_recording() + list(artefacts.get(a, [])))
+        k = 0
+        for p in hp:
+            n = len(p.terms)
+            paths.append(replace(p, terms=tuple(t.with_gain(float(x)) for t, x in zip(p.terms, g[k: k + n],
+                                                                                      strict=True))))
+            k += n
+        terms[a] = []
+        for t, setting in kept:
+            gs = g[k: k + len(setting.components)]
+            k += len(setting.components)
+            contrib = sum((gi * stack.column(c, setting.chain) for gi, c in zip(gs, setting.components, strict=True)),
+                          np.zeros(stack.n))
+            terms[a].append(Term(trial=t, axis=a, setting=setting, gains=np.asarray(gs), contribution=contrib))
+    return extend_model(model.with_paths(paths), terms), terms
