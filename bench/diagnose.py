@@ -389,8 +389,10 @@ def diagnosis_names(out_dir: Path) -> Names:
     if models:
         info = tomllib.loads(models[0].read_text()).get("info", {}).get("diagnosis", {})
         if "accepted" in info:
-            return Names(list(info.get("accepted", [])), list(info.get("artefacts_excluded", [])), nothing, unfit,
-                         "model info")
+            # named: what was written, and what explains the re-identified paths' change (named, maybe not written)
+            named = list(info.get("accepted", []))
+            named += [n for n in info.get("explained", []) if n not in named]
+            return Names(named, list(info.get("artefacts_excluded", [])), nothing, unfit, "model info")
     if (out_dir / "report.json").is_file():
         doc = json.loads((out_dir / "report.json").read_text())
         if "accepted" in doc:
