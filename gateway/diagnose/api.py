@@ -187,8 +187,8 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
         explanation = None
         if reid is not None and comparison.chosen == "reidentified" and not any(reid.terms.values()):
             # more data alone won: which physics reproduces what the re-identified paths changed?
-            explanation = explain(stack, model, reid, comparison, hyps, block=block, artefacts=artefacts,
-                                  options=sub, writable=writable, progress=progress)
+            explanation = explain(stack, model, reid, comparison, hyps, block=block,
+                                  artefacts=artefacts, options=sub, writable=writable, progress=progress)
     result = {"reidentified": results["refit"], "explained": explanation.result if explanation else None
               }.get(comparison.chosen) or results["frozen"]
     on = [(t, f"{t.hypothesis.key} on {', '.join(t.axes)}") for t in result.accepted]

@@ -4,11 +4,16 @@ Re-identified on every recording, the model's paths absorb much of a concealed e
 stretches towards the experiments' length; the motor-current paths together span the cabinet's sum of
 currents^2): it predicts better, and nothing is named. So, once the re-identified model without a new term
 is the best, the question is asked again with the paths held to what the identification experiments
-determined (each identified term at its time constants, its gain free): each hypothesis is judged, as in
-the other searches, by what it adds to those held paths. One that passes there, and whose model (held paths
-and the term) predicts the held-out recordings about as well as the unconstrained re-identification (that
-one not significantly better over the blocks), explains the change and is named. The report says what the
-re-identified paths changed either way; when nothing explains it, it says that more data changed the paths.
+determined (each identified term at its time constants, its gain free): each named mechanism (not a generic
+extra mode or dead time on a path: that is what re-identification did) is judged, as in the other searches,
+by what it adds to those held paths. What passes there is scored on the comparison's held-out recordings
+beside the same linear fit with the paths held and nothing added, and with the paths left free (every input
+through the bank of lags up to the experiments' length, no new term): it explains the change, and is named,
+when it recovers at least :data:`EXPLAINED_SHARE` of what freeing the paths removed from the held-out squared
+error. Measured on the bench: in the no-effect cases a term that merely adds freedom (eddy loss) recovered
+76-92 %, the slow mode 99.7 % and more. Named, its model is written when it predicts the held-out data no worse
+than the re-identified one. The report says what the re-identified paths changed either way; when nothing
+explains it, it says that more data changed the paths.
 """
 
 from __future__ import annotations
@@ -19,16 +24,17 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from gateway.diagnose.compare import Candidate, Comparison, _informative, score_linear
+from gateway.diagnose.compare import Candidate, Comparison, _candidate, score_linear
 from gateway.diagnose.data import Stack
 from gateway.diagnose.extend import extend_model
 from gateway.diagnose.hypotheses import Hypothesis
-from gateway.diagnose.refit import Reidentified, final_gains, unit_columns
+from gateway.diagnose.refit import Reidentified, final_gains, path_corrections, unit_columns
 from gateway.diagnose.search import Options, SearchResult, Term, Trial, search, setting_columns
-from gateway.diagnose.select import one_sided_p
 from gateway.model.model import PathTF, ThermalModel
 
 KEY = "explained"
+#: the share of the held-out squared error that freeing the paths removed which the named terms must recover
+EXPLAINED_SHARE = 0.95
 
 
 @dataclass(kw_only=True)
@@ -104,7 +110,9 @@ def explain(stack: Stack, model: ThermalModel, reid: Reidentified, comparison: C
     """
     out = Explanation(changes=path_changes(model, reid.model))
     held = held_corrections(stack, model)
-    physics = [h for h in hyps if not h.artefact]
+    # named mechanisms only: a generic extra mode or dead time on a path is a change of the paths' structure,
+    # what the re-identification already did, not physics that explains it
+    physics = [h for h in hyps if not h.artefact and not h.generic]
     result = search(stack, physics, block=block, artefacts=dict(artefacts), options=options, corrections=held,
                     progress=(lambda m: progress(f"held: {m}")) if progress else None)
     out.result = result
@@ -126,23 +134,37 @@ def explain(stack: Stack, model: ThermalModel, reid: Reidentified, comparison: C
     cand = score_linear(comparison, stack, block, key=KEY, title=title, model=m, extra=extra, artefacts=artefacts,
                         options=options)
     out.candidate = cand
+    # the same linear fits on the same folds with the paths held and nothing added, and with the paths left free
+    # (every input through the refit search's bank of lags up to the experiments' length, no new term): the term
+    # explains the change when it recovers what freeing the paths gained, all but a share within the noise
+    bank = path_corrections(stack, model)
+    held_only = _candidate(stack, block, comparison.folds, comparison.score, key="held", title="", model=model,
+                           extra=held, artefacts=artefacts)
+    free = _candidate(stack, block, comparison.folds, comparison.score, key="free", title="", model=model,
+                      extra={a: bank for a in stack.axes}, artefacts=artefacts)
+    gap = held_only.sse - free.sse
+    share = (held_only.sse - cand.sse) / gap if gap > 0 else 1.0
     reid_c = comparison.candidates["reidentified"]
-    p_reid = one_sided_p(_informative(cand.block_sse, reid_c.block_sse))
+    names = "; ".join(t.hypothesis.title for t in accepted)
     if not cand.passes:
-        out.verdict = ("the named terms with the paths held do not predict better than the identified model "
+        out.verdict = ("the terms with the paths held do not predict better than the identified model "
                        f"({cand.verdict})")
-    elif p_reid < options.alpha:
-        out.verdict = (f"the re-identified paths predict significantly better than the named terms with the paths held "
-                       f"(p = {p_reid:.2g}): they changed more than these terms explain")
-        cand.verdict += f"; the re-identified model is significantly better (p = {p_reid:.2g})"
+    elif share < EXPLAINED_SHARE:
+        out.verdict = (f"{names} recovers {100 * share:.0f} % of what freeing the paths removed from the held-out "
+                       f"squared error (held {held_only.sse:.4g}, free {free.sse:.4g}, with it {cand.sse:.4g} um^2; "
+                       f"at least {100 * EXPLAINED_SHARE:.0f} % needed): the paths changed more than it explains")
+        cand.verdict += f"; explains {100 * share:.0f} % of the paths' change, not named"
     else:
         out.named = accepted
-        out.verdict = (f"the re-identified model is not significantly better (p = {p_reid:.2g}): "
-                       f"{'; '.join(t.hypothesis.title for t in accepted)} explains the change")
+        out.verdict = (f"{names} recovers {100 * min(share, 1.0):.0f} % of what freeing the paths removed from the "
+                       f"held-out squared error (held {held_only.sse:.4g}, free {free.sse:.4g}, with it "
+                       f"{cand.sse:.4g} um^2): it explains the change")
         if cand.sse <= reid_c.sse:
             comparison.chosen = KEY
             reid_c.verdict = reid_c.verdict.removesuffix("; written")
-            cand.verdict += "; no worse than the re-identified model: written"
+            cand.verdict += "; named, and no worse than the re-identified model: written"
+        else:
+            cand.verdict += "; named; the re-identified model predicts better and is written"
     return out
 
 
