@@ -155,6 +155,11 @@ def test_without_the_room_nothing_is_named_and_the_written_model_is_no_worse():
     else:
         assert d.comparison.chosen == "reidentified"
         assert "no missing physics is named" in text
+        # asked which physics explains what more data changed in the paths, it names none
+        assert d.explanation is not None
+        assert d.explanation.names == []
+        assert "no family is named" in text
+        assert d.extended.info["diagnosis"]["explained"] == []
 
 
 def test_validation_starts_from_the_day_before_or_from_a_fitted_state(plant_data, diagnosed):
