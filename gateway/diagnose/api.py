@@ -189,7 +189,7 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
             # more data alone won: which physics reproduces what the re-identified paths changed?
             explanation = explain(stack, model, reid, comparison, hyps, block=block,
                                   artefacts=artefacts, options=sub, writable=writable, progress=progress)
-    result = {"reidentified": results["refit"], "explained": explanation.result if explanation else None
+    result = {"reidentified": results.get("refit"), "explained": explanation.result if explanation else None
               }.get(comparison.chosen) or results["frozen"]
     on = [(t, f"{t.hypothesis.key} on {', '.join(t.axes)}") for t in result.accepted]
     record = {"cncgw_version": __version__, "recordings": list(stack.names), "written": comparison.chosen,
