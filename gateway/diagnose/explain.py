@@ -12,8 +12,8 @@ through the bank of lags up to the experiments' length, no new term): it explain
 when it recovers at least :data:`EXPLAINED_SHARE` of what freeing the paths removed from the held-out squared
 error. Measured on the bench: a term that merely adds freedom (eddy loss) recovered 57-92 % in the no-effect
 cases and 97 % beside an absorbed chiller, the slow mode 99.1 % and more (a thin margin). Named, its model is
-written when it predicts the held-out data no worse than the re-identified one. The report says what the re-identified paths changed either way; when nothing
-explains it, it says that more data changed the paths.
+written when it predicts the held-out data no worse than the re-identified one. The report says what the
+re-identified paths changed either way; when nothing explains it, it says that more data changed the paths.
 """
 
 from __future__ import annotations
@@ -211,4 +211,6 @@ def held_model(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
             contrib = sum((gi * stack.column(c, setting.chain) for gi, c in zip(gs, setting.components, strict=True)),
                           np.zeros(stack.n))
             terms[a].append(Term(trial=t, axis=a, setting=setting, gains=np.asarray(gs), contribution=contrib))
-    return extend_model(model.with_paths(paths), terms), terms
+    # the gains were refitted: the identification's correlation of their errors no longer describes them
+    correlation = {a: c for a, c in model.gain_correlation.items() if a not in terms}
+    return extend_model(model.with_paths(paths, gain_correlation=correlation), terms), terms
