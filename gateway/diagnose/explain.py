@@ -163,6 +163,7 @@ def explain(stack: Stack, model: ThermalModel, reid: Reidentified, comparison: C
         cand.verdict += f"; explains {100 * share:.0f} % of the paths' change, not named"
     else:
         out.named = accepted
+        result.accepted = list(accepted)  # what is named is what the search's record says was taken
         out.verdict = (f"{names} recovers {100 * min(share, 1.0):.0f} % of what freeing the paths removed from the "
                        f"held-out squared error (held {held_only.sse:.4g}, free {free.sse:.4g}, with it "
                        f"{cand.sse:.4g} um^2): it explains the change")
