@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/adaptive.py [--quick] [--days 4] [--seeds 1,2] [--variants 0,1,2]
                                        [--effects room,slow,coolant] [--intervals 1,2,4] [--plot DIR]
-                                       [--cache DIR] [--json FILE] [--extrapolation-gain-sd K] [--diagonal]
+                                       [--cache DIR] [--json FILE] [--extrapolation-gain-sds K,...] [--diagonal]
 
 Per plant variant (``[plant] variant = N``, simulators/machine/variants.py) the model is identified from the
 nine bundled identification scenarios on that plant (``gateway.identify.identify``, the joint method, as
@@ -28,7 +28,8 @@ zero-at-probe at the same interval and to zero-at-probe every hour, the band's c
 displacement per axis, and each aim of issue 16 met or missed; why a band misses (per interval and axis: the
 RMS of error / sd, the factor the band would need for 95 %, the bank's own innovation ratio at the probes, the
 band's sd against the probe's); and the band's coverage over the windows beyond the model's coverage (it
-widens there by ``--extrapolation-gain-sd``, 0 by default). Then bad probes: into the 2 h schedule of
+widens there by ``--extrapolation-gain-sds``: the bank's members' relative gain sd per unit of distance
+beyond, weighed by the probes; the default's). Then bad probes: into the 2 h schedule of
 every case go a gross outlier (the estimate + 8 sd of its prediction and at least 20 um: a chip on the
 reference), a probe whose sign is reversed (where |estimate| is largest against its band) and a repeated
 sequence number with other values; each must be refused with its reason and the estimates must be
@@ -410,6 +411,10 @@ def _ints(s: str) -> list[int]:
     return [int(x) for x in s.split(",") if x]
 
 
+def _floats(s: str) -> list[float]:
+    return [float(x) for x in s.split(",") if x]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="one seed, variants 0 and 1, 2 days")
@@ -419,9 +424,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--effects", default=",".join(EFFECTS))
     ap.add_argument("--intervals", default="1,2,4")
     ap.add_argument("--probe-sd-um", type=float, default=0.3)
-    ap.add_argument("--extrapolation-gain-sd", type=float, default=DriftSettings().extrapolation_gain_sd,
-                    help="relative gain sd per unit of log distance beyond the model's coverage (0: the band "
-                         "does not widen there)")
+    ap.add_argument("--extrapolation-gain-sds", type=_floats, default=list(DriftSettings().extrapolation_gain_sds),
+                    help="the bank's relative gain sds per unit of log distance beyond the model's coverage, "
+                         "weighed by the probes (0: the band does not widen there; default: DriftSettings')")
+    ap.add_argument("--extrapolation-prior", type=float, default=DriftSettings().extrapolation_prior,
+                    help="the bank's prior weight on the members that widen beyond coverage")
     ap.add_argument("--diagonal", action="store_true",
                     help="the gains' prior without the model's [gain_correlation] (each path's gain error "
                          "independent, as before it was stored)")
@@ -439,7 +446,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.plot:
         args.plot.mkdir(parents=True, exist_ok=True)
 
-    settings = DriftSettings(extrapolation_gain_sd=args.extrapolation_gain_sd, gain_correlation=not args.diagonal)
+    settings = DriftSettings(extrapolation_gain_sds=tuple(args.extrapolation_gain_sds),
+                             extrapolation_prior=args.extrapolation_prior,
+                              gain_correlation=not args.diagonal)
     t0 = time.perf_counter()
     models = {v: identified_model(v, args.cache) for v in args.variants}
     print(f"models of plant variants {args.variants} identified from the nine scenarios "
@@ -463,7 +472,7 @@ def main(argv: list[str] | None = None) -> int:
                                bad_probe_check(models[v], run, seed=seed, variant=v, probe_sd_um=args.probe_sd_um,
                                                settings=settings)))
     n_windows = sum(r.truth.shape[1] for r in results)
-    bank = len(settings.scales) * len(settings.gain_scales)
+    bank = len(settings.scales) * len(settings.gain_scales) * len(settings.extrapolation_gain_sds)
     print(f"{len(results)} runs of {args.days} days, {n_windows} windows filtered in {wall:.1f} s "
           f"({1e3 * wall / n_windows:.2f} ms a window, a bank of {bank} filters per axis)\n")
     report(results, intervals, args)
@@ -533,7 +542,8 @@ def report(results: list[CaseResult], intervals: list[float], args: argparse.Nam
     calibration_report(by, cases, intervals)
     share = [by[(*c, intervals[0])].outside_share for c in cases]
     print(f"  beyond the model's coverage ({100 * min(share):.0f}-{100 * max(share):.0f} % of the windows; "
-          f"extrapolation_gain_sd {args.extrapolation_gain_sd:g}):")
+          f"extrapolation_gain_sds {', '.join(f'{k:g}' for k in args.extrapolation_gain_sds)}, prior weight "
+          f"{args.extrapolation_prior:g}):")
     for ih in intervals:
         cov = np.array([by[(*c, ih)].coverage_outside for c in cases])
         ok = np.isfinite(cov).all(axis=1)

@@ -78,12 +78,19 @@ class DriftSettings:
     activity_ref_um_per_h: float = 3.0
     #: the smallest weight a member keeps (so a change of conditions is found again)
     weight_floor: float = 1e-3
-    #: beyond the model's coverage a path's relative gain sd is at least this times how far its factor lies
-    #: beyond (gateway.model.coverage.beyond_coverage: log(1 + covered spans)); 0 (the default): coverage does
-    #: not widen the band. Off because it is not calibrated: on bench/adaptive.py 0.05 and 0.1 lifted the
-    #: band's worst coverage beyond coverage (z 39.9 % -> 86.1 / 94.5 %) but left most of those windows covered
-    #: 99-100 % and the whole run's calibration worse (87 -> 70 / 65 of 162 case-axes in 90-98 %)
-    extrapolation_gain_sd: float = 0.0
+    #: beyond the model's coverage a path's relative gain sd is at least k times how far its factor lies beyond
+    #: (gateway.model.coverage.beyond_coverage: log(1 + covered spans)), k one of these per member: the bank
+    #: holds every (scale, gain scale, k), so each probe's innovation weighs how much widening beyond coverage
+    #: the data support (as it weighs the disturbance's scale). (0.0,): coverage does not widen the band. A
+    #: fixed k is not calibrated: on bench/adaptive.py 0.05 and 0.1 alone lifted the worst coverage beyond
+    #: coverage (z 39.9 % -> 86.1 / 94.5 %) but left most of those windows covered 99-100 % and the whole run's
+    #: calibration worse (87 -> 70 / 65 of 162 case-axes in 90-98 %)
+    extrapolation_gain_sds: tuple[float, ...] = (0.0,)
+    #: the bank's prior weight on the members that widen beyond coverage (split evenly among them; the rest on
+    #: those that do not): the weights start there, forget toward it and return to it at a re-anchor, so a
+    #: little weight on a wide member, which widens the mixture's band little, is kept until probes beyond
+    #: coverage say how much it is needed
+    extrapolation_prior: float = 0.1
 
     def __post_init__(self) -> None:
         for name in ("rate_sd_um_per_h", "rate_tau_h", "offset_tau_h", "weight_memory_h", "gain_memory_h",
@@ -91,8 +98,11 @@ class DriftSettings:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"DriftSettings.{name} must be finite and > 0. Got {v!r}")
-        if not (math.isfinite(self.extrapolation_gain_sd) and self.extrapolation_gain_sd >= 0):
-            raise ValueError(f"DriftSettings.extrapolation_gain_sd must be >= 0. Got {self.extrapolation_gain_sd!r}")
+        k = self.extrapolation_gain_sds
+        if not k or not all(math.isfinite(x) and x >= 0 for x in k):
+            raise ValueError(f"DriftSettings.extrapolation_gain_sds must be one or more values >= 0. Got {k!r}")
+        if not (0.0 < self.extrapolation_prior < 1.0):
+            raise ValueError(f"DriftSettings.extrapolation_prior must be in (0, 1). Got {self.extrapolation_prior!r}")
         if not (math.isfinite(self.walk_um_per_sqrt_h) and self.walk_um_per_sqrt_h >= 0):
             raise ValueError(f"DriftSettings.walk_um_per_sqrt_h must be >= 0. Got {self.walk_um_per_sqrt_h!r}")
         for name in ("scales", "gain_scales"):
@@ -245,11 +255,14 @@ class AdaptiveEstimator:
         self.gain_sd = gain_sd(model, s.gain_sd_default) if s.gains else np.zeros((n_a, n_in))
         self.gain_corr = gain_correlation(model) if s.gain_correlation else np.broadcast_to(np.eye(n_in),
                                                                                             (n_a, n_in, n_in))
-        pairs = [(a, b) for a in s.scales for b in (s.gain_scales if s.gains else (1.0,))]
-        scales = np.array([a for a, _ in pairs])
-        g_scales = np.array([b for _, b in pairs])
+        members = [(a, b, k) for a in s.scales for b in (s.gain_scales if s.gains else (1.0,))
+                   for k in (s.extrapolation_gain_sds if s.gains else (0.0,))]
+        scales = np.array([a for a, _, _ in members])
+        g_scales = np.array([b for _, b, _ in members])
         self.scales, self.gain_scales = scales, g_scales
-        n_m = len(pairs)
+        #: per member, the relative gain sd per unit of distance beyond coverage
+        self.extrapolation = np.array([k for _, _, k in members])
+        n_m = len(members)
         phi_dr, q_dr, p_dr = _drift_model(s, self.window_s)
         a_g = math.exp(-self.window_s / (s.gain_memory_h * 3600.0))
         F = np.zeros((n, n))
@@ -273,7 +286,15 @@ class AdaptiveEstimator:
         # the datum was probed); it grows from there. A re-anchor widens by the stationary spread instead.
         self.P = P0
         self.P_reanchor = prior + P0
-        self.logw = np.full((n_a, n_m), -math.log(n_m))
+        # the weights' prior: even over the disturbance and gain scales; over the widening beyond coverage,
+        # extrapolation_prior on the members that widen (where some do and some do not)
+        wide = self.extrapolation > 0
+        if wide.any() and not wide.all():
+            p = np.where(wide, s.extrapolation_prior / wide.sum(), (1.0 - s.extrapolation_prior) / (~wide).sum())
+        else:
+            p = np.full(n_m, 1.0 / n_m)
+        self.log_prior = np.log(p)
+        self.logw = np.tile(self.log_prior, (n_a, 1))
         self.c = np.zeros((n_a, n_in))
         self.c_prev = np.zeros((n_a, n_in))
         self.time_s: float | None = None
@@ -289,9 +310,10 @@ class AdaptiveEstimator:
 
         ``beyond`` (inputs,): how far each input lies beyond the model's coverage in this window
         (:func:`gateway.model.coverage.beyond_coverage`, 0 inside). There the estimate extrapolates: the paths'
-        relative gain error is taken as ``extrapolation_gain_sd`` x beyond (at most 1) each, one shared error,
-        in every member along their common direction (:meth:`_extrapolating`); a probe then teaches the gains
-        there, and without probes they relax over ``gain_memory_h`` as any gain does.
+        relative gain error is taken as the member's ``extrapolation_gain_sds`` value x beyond (at most 1) each,
+        one shared error along their common direction (:meth:`_extrapolating`); a probe then weighs the members
+        (how much widening the data support) and teaches the gains there, and without probes they relax over
+        ``gain_memory_h`` as any gain does.
         """
         c = np.asarray(contributions, dtype=float)
         if c.shape != self.c.shape or not np.all(np.isfinite(c)):
@@ -302,31 +324,29 @@ class AdaptiveEstimator:
             # cancelling or not) scales its noise
             act = np.abs(c - self.c).sum(axis=1) * (3600.0 / self.window_s) / self.settings.activity_ref_um_per_h
             self.P = self.F @ self.P @ self.F.T + self.Qg + self.Qd * (1.0 + act)[:, None, None, None]
-        k = self.settings.extrapolation_gain_sd
-        if beyond is not None and k > 0 and self.settings.gains:
-            self._extrapolating(c, np.minimum(k * np.nan_to_num(np.asarray(beyond, float)[: self.n_in], nan=0.0), 1.0))
+        if beyond is not None and self.extrapolation.max() > 0:
+            b = np.clip(np.nan_to_num(np.asarray(beyond, float)[: self.n_in], nan=0.0), 0.0, None)
+            if np.any(b > 0):
+                self._extrapolating(c, np.minimum(self.extrapolation[:, None] * b[None, :], 1.0))
         self.c_prev, self.c = self.c, c
         self.prev_time_s, self.time_s = self.time_s, float(end_s)
         self.steps += 1
 
     def _extrapolating(self, c: np.ndarray, v: np.ndarray) -> None:
-        """Beyond coverage: the paths' gains share a relative error of ``v`` (inputs,) whose sign is unknown.
+        """Beyond coverage: the paths' gains share a relative error of ``v`` (members, inputs) of unknown sign.
 
         Co-varying paths (spindle speed and its currents) carry large contributions that cancel, so their
-        errors beyond coverage are taken as one: the variance of ``sum_p v_p c_p g_p`` direction, raised in every
+        errors beyond coverage are taken as one: the variance of ``sum_p v_p c_p g_p`` direction, raised in each
         member to at least (sum_p v_p c_p)^2 by adding a multiple of v v^T (a covariance stays one; nothing is
         added where the gains are that uncertain already, so it does not pile up window after window).
         """
-        if not np.any(v > 0):
-            return
         n = self.n_in
-        vv = np.where(self.gain_sd > 0, v[None, :], 0.0)  # (axes, inputs): a zero path has no gain
-        cv = (c * vv).sum(axis=1)  # (axes,)
+        vv = np.where(self.gain_sd[:, None, :] > 0, v[None, :, :], 0.0)  # (axes, members, inputs)
+        cv = np.einsum("ai,ami->am", c, vv)
         target = cv * cv
         cur = np.einsum("ai,amij,aj->am", c, self.P[:, :, :n, :n], c)
-        safe = np.where(target > 0, target, 1.0)[:, None]
-        alpha = np.where(target[:, None] > 0, np.clip(1.0 - cur / safe, 0.0, None), 0.0)
-        self.P[:, :, :n, :n] += alpha[:, :, None, None] * (vv[:, None, :, None] * vv[:, None, None, :])
+        alpha = np.where(target > 0, np.clip(1.0 - cur / np.where(target > 0, target, 1.0), 0.0, None), 0.0)
+        self.P[:, :, :n, :n] += alpha[:, :, None, None] * (vv[:, :, :, None] * vv[:, :, None, :])
 
     def _row(self, c: np.ndarray) -> np.ndarray:
         """Measurement rows (axes, n) for contributions ``c`` (axes, inputs)."""
@@ -449,9 +469,9 @@ class AdaptiveEstimator:
         return agree if len(agree) >= self.settings.reanchor_after - 1 else []
 
     def _reanchor(self, i: int) -> None:
-        """Axis ``i``: every member's covariance at least its prior, the bank's weights even."""
+        """Axis ``i``: every member's covariance at least its prior, the bank's weights back to their prior."""
         self.P[i] = self.P[i] + self.P_reanchor[i]  # a sum stays a covariance; an element-wise max need not
-        self.logw[i] = -math.log(self.logw.shape[1])
+        self.logw[i] = self.log_prior
 
     def _update(self, i: int, c: np.ndarray, z: float, R: float, t_s: float, mean: np.ndarray,
                 var: np.ndarray) -> None:
@@ -471,7 +491,8 @@ class AdaptiveEstimator:
         s = self.settings
         if mem.last_probe_s is not None:
             alpha = math.exp(-max(t_s - mem.last_probe_s, 0.0) / (s.weight_memory_h * 3600.0))
-            self.logw[i] *= alpha
+            # forget toward the prior (for an even prior the same as toward even weights)
+            self.logw[i] = alpha * self.logw[i] + (1.0 - alpha) * self.log_prior
         mem.last_probe_s = t_s
         self.logw[i] += -0.5 * (np.log(2 * math.pi * S) + nu * nu / S)
         w = np.exp(self.logw[i] - self.logw[i].max())
