@@ -81,10 +81,10 @@ class DriftSettings:
     #: beyond the model's coverage a path's relative gain sd is at least k times how far its factor lies beyond
     #: (gateway.model.coverage.beyond_coverage: log(1 + covered spans)), k one of these per member: the bank
     #: holds every (scale, gain scale, k), so each probe's innovation weighs how much widening beyond coverage
-    #: the data support (as it weighs the disturbance's scale). (0.0,): coverage does not widen the band. A
-    #: fixed k is not calibrated: on bench/adaptive.py 0.05 and 0.1 alone lifted the worst coverage beyond
-    #: coverage (z 39.9 % -> 86.1 / 94.5 %) but left most of those windows covered 99-100 % and the whole run's
-    #: calibration worse (87 -> 70 / 65 of 162 case-axes in 90-98 %)
+    #: the data support (as it weighs the disturbance's scale). (0.0,), the default: coverage does not widen
+    #: the band. Off because on bench/adaptive.py --quick it did not help the calibration: (0, 0.1) with prior
+    #: weight 0.02 put 12 of 54 case-axes in 90-98 % beyond coverage (10 off) but the whole run 27 (28 off);
+    #: larger priors or more k widened bands that were already too wide (README, Beyond the model's coverage)
     extrapolation_gain_sds: tuple[float, ...] = (0.0,)
     #: the bank's prior weight on the members that widen beyond coverage (split evenly among them; the rest on
     #: those that do not): the weights start there, forget toward it and return to it at a re-anchor, so a
