@@ -27,7 +27,7 @@ import scipy.stats
 
 RIDGE = 1e-9  # relative to unit-norm columns: keeps near-collinear offsets and decays solvable
 #: settings of one grid are scored together up to this many regressors at once (memory: K x this x fixed)
-BATCH_COLUMNS = 256
+BATCH_COLUMNS = 128
 
 
 BURN_IN = -2  #: block id of a recording's first block: always fitted, never held out
