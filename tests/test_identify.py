@@ -222,7 +222,7 @@ def test_extra_columns_projected_out_once_give_the_full_least_squares():
     ramp = np.broadcast_to(np.linspace(0.0, 1.0, m), (e, m)) * (np.arange(e) == 1)[:, None]  # one experiment's drift
     wave = np.broadcast_to(np.sin(np.arange(m) / 40.0), (e, m))
     es = replace(es, extra=np.stack([ramp, wave]), extra_names=("ramp", "wave"))
-    problem = AxisProblem(es, 1)
+    problem = AxisProblem(es, 1, project_extra=True)
     structures = ["first_order"] * 3 + ["zero"] * 2
     thetas = [[np.log(2400.0)], [np.log(1500.0)], [np.log(900.0)], [], []]
     paths = np.column_stack([c for j, s in enumerate(structures) if s != "zero"

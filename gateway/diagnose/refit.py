@@ -239,7 +239,9 @@ def held_out_reidentified(stack: Stack, model: ThermalModel, reid: Reidentified,
             masked[:, held] = np.nan
             es = stack_experiments(stack, factors, masked, extras)
             try:
-                problem = AxisProblem(es, i, input_bounds=[reid.bounds] * len(factors))
+                # refined from the chosen time constants, not searched from several starts: the extra columns
+                # (terms and nuisance) are factorised once per fold, not once per evaluation
+                problem = AxisProblem(es, i, input_bounds=[reid.bounds] * len(factors), project_extra=True)
                 fit = problem.fit(sel.chosen.structures, sel.chosen.thetas)
             except (ValueError, IdentificationError):
                 continue  # nothing left to fit on: the fold stays unscored for this candidate

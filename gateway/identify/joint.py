@@ -127,7 +127,7 @@ class AxisProblem:
     """
 
     def __init__(self, es: ExperimentSet, axis_index: int, *,
-                 input_bounds: Sequence[Bounds | None] | None = None) -> None:
+                 input_bounds: Sequence[Bounds | None] | None = None, project_extra: bool = False) -> None:
         self.es = es
         self.i = axis_index
         self.valid = es.valid(axis_index)
@@ -157,10 +157,13 @@ class AxisProblem:
         #: per input, where its time constants may go (default: the data's bounds)
         self.input_bounds = [b or self.bounds for b in (input_bounds or [None] * len(es.factors))]
         self.evaluations = 0
-        # the extra columns are the same in every solve: projected out once (Frisch-Waugh again), so each
-        # evaluation factorises the path columns only (a diagnosis carries dozens of nuisance columns)
+        # the extra columns are the same in every solve: with ``project_extra`` they are projected out once
+        # (Frisch-Waugh again), so each evaluation factorises the path columns only (a diagnosis carries dozens
+        # of nuisance columns). Off by default: the same least squares, but its rounding differs, and a fit
+        # from several starts over many paths can then settle in another local minimum (measured: diagnosis's
+        # re-identification of z on room-recorded variant 2 moved its fresh-day RMS 4.7 -> 5.3 um)
         self._extra_q: np.ndarray | None = None
-        if self.extra.shape[1]:
+        if self.extra.shape[1] and project_extra:
             E = self.demean(self.extra)
             escale = np.linalg.norm(E, axis=0)
             escale[escale == 0] = 1.0
