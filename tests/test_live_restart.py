@@ -43,6 +43,7 @@ def windows_logged(proc, n, timeout_s=60.0):
         line = proc.stderr.readline()
         if not line:
             break
+        proc.seen_lines = [*getattr(proc, "seen_lines", [])[-20:], line]  # shown when a test fails
         try:
             entry = json.loads(line)
         except json.JSONDecodeError:
@@ -163,7 +164,7 @@ def test_a_second_ctrl_c_does_not_cut_the_shutdown_short(tmp_path):
     data = tmp_path / "data"
     with dry_run(tmp_path, data, speedup=60.0) as (_, proc):
         try:
-            assert len(windows_logged(proc, 1, timeout_s=90.0)) == 1
+            assert len(windows_logged(proc, 1, timeout_s=90.0)) == 1, "".join(getattr(proc, "seen_lines", []))
             proc.send_signal(signal.SIGINT)
             time.sleep(0.05)
             proc.send_signal(signal.SIGINT)

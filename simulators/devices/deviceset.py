@@ -36,6 +36,9 @@ from simulators.live import LiveSource
 log = logging.getLogger(__name__)
 
 
+#: how long a device may take to start (wall seconds)
+START_TIMEOUT_S = 60.0
+
 class Device(Protocol):
     """What the set needs of a device."""
 
@@ -149,7 +152,9 @@ class DeviceSet:
         self._loop.start()
         try:
             for device in self.devices:
-                self._loop.run(device.start())
+                # a device's start binds its port and builds its address space (the OPC UA server's took
+                # over the 10 s call timeout at a load average of 12): a slow start is not a failure
+                self._loop.run(device.start(), timeout_s=START_TIMEOUT_S)
                 self._started.append(device)
         except BaseException:
             self.stop()
