@@ -39,6 +39,7 @@ log = logging.getLogger(__name__)
 #: how long a device may take to start (wall seconds)
 START_TIMEOUT_S = 60.0
 
+
 class Device(Protocol):
     """What the set needs of a device."""
 
