@@ -9,6 +9,7 @@ cleanly; after a crash or ``kill -9`` the next start rebuilds the estimate from 
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import json
 import logging
 import signal
@@ -119,6 +120,9 @@ def run(args: argparse.Namespace) -> int:
     previous = previous_int = None
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+        if getattr(args, "console", False):
+            # `kill -USR1 PID` writes every thread's stack to stderr (the journal): what a hung stop is doing
+            faulthandler.register(signal.SIGUSR1, all_threads=True)
     end = clock.now() + args.minutes * 60.0 if args.minutes else None
     log.info("cncgw run: %s with model %s, data in %s", profile.path, model_path, args.data)
     try:
