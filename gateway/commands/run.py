@@ -123,6 +123,14 @@ def run(args: argparse.Namespace) -> int:
         if getattr(args, "console", False):
             # `kill -USR1 PID` writes every thread's stack to stderr (the journal): what a hung stop is doing
             faulthandler.register(signal.SIGUSR1, all_threads=True)
+            if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:  # inherited (a script's background job)
+                log.warning("SIGINT is ignored (inherited from the process that started cncgw run): Ctrl-C will "
+                            "not stop it; stop it with SIGTERM (kill PID)")
+            # a signal mask is inherited too, and no stop signal is ever meant to stay blocked in a service
+            blocked = signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+            if blocked & {signal.SIGINT, signal.SIGTERM}:
+                log.warning("%s was blocked by the process that started cncgw run: unblocked",
+                            " and ".join(sorted(s.name for s in blocked & {signal.SIGINT, signal.SIGTERM})))
     end = clock.now() + args.minutes * 60.0 if args.minutes else None
     log.info("cncgw run: %s with model %s, data in %s", profile.path, model_path, args.data)
     try:
