@@ -28,7 +28,7 @@ from gateway.diagnose.compare import Candidate, Comparison, _candidate, score_li
 from gateway.diagnose.data import Stack
 from gateway.diagnose.extend import extend_model
 from gateway.diagnose.hypotheses import Hypothesis
-from gateway.diagnose.refit import Reidentified, final_gains, path_corrections, unit_columns
+from gateway.diagnose.refit import Reidentified, final_gains, gains_into, path_corrections, unit_columns
 from gateway.diagnose.search import Options, SearchResult, Term, Trial, search, setting_columns
 from gateway.model.model import PathTF, ThermalModel
 
@@ -199,19 +199,8 @@ def held_model(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
             phys += [stack.column(c, setting.chain) for c in comps]
         cols = unit_columns(stack, hp) + phys
         g = final_gains(stack.y[i] - frozen[i], cols, stack.per_recording() + list(artefacts.get(a, [])))
-        k = 0
-        for p in hp:
-            n = len(p.terms)
-            paths.append(replace(p, terms=tuple(t.with_gain(float(x)) for t, x in zip(p.terms, g[k: k + n],
-                                                                                      strict=True))))
-            k += n
-        terms[a] = []
-        for t, setting in kept:
-            gs = g[k: k + len(setting.components)]
-            k += len(setting.components)
-            contrib = sum((gi * stack.column(c, setting.chain) for gi, c in zip(gs, setting.components, strict=True)),
-                          np.zeros(stack.n))
-            terms[a].append(Term(trial=t, axis=a, setting=setting, gains=np.asarray(gs), contribution=contrib))
+        axis_paths, terms[a] = gains_into(stack, a, hp, kept, g)
+        paths += axis_paths
     # the gains were refitted: the identification's correlation of their errors no longer describes them
     correlation = {a: c for a, c in model.gain_correlation.items() if a not in terms}
     return extend_model(model.with_paths(paths, gain_correlation=correlation), terms), terms

@@ -167,20 +167,8 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
         fitted = fit.paths(factors)
         cols = unit_columns(stack, fitted) + phys
         g = final_gains(stack.y[i] - frozen[i], cols, stack.per_recording() + list((artefacts or {}).get(a, [])))
-        axis_paths, k = [], 0
-        for p in fitted:
-            n = len(p.terms)
-            axis_paths.append(replace(p, terms=tuple(t.with_gain(float(x)) for t, x in zip(p.terms, g[k: k + n],
-                                                                                          strict=True))))
-            k += n
+        axis_paths, terms[a] = gains_into(stack, a, fitted, kept, g)
         paths += axis_paths
-        terms[a] = []
-        for t, setting in kept:
-            gs = g[k: k + len(setting.components)]
-            k += len(setting.components)
-            contrib = sum((gi * stack.column(c, setting.chain) for gi, c in zip(gs, setting.components, strict=True)),
-                          np.zeros(stack.n))
-            terms[a].append(Term(trial=t, axis=a, setting=setting, gains=np.asarray(gs), contribution=contrib))
         prediction[i] = frozen[i] + sum((x * c for x, c in zip(g, cols, strict=True)), np.zeros(stack.n))
         fixed[a] = frozen[i]
     # the re-identified paths' gain errors go together as their fit says (an axis without one: independent)
@@ -257,6 +245,24 @@ def held_out_reidentified(stack: Stack, model: ThermalModel, reid: Reidentified,
                 pred[member] = shape[member] + zero
         out[a] = pred + reid.fixed[a]
     return out
+
+
+def gains_into(stack: Stack, axis: str, paths: Sequence[PathTF], kept: Sequence[tuple[Trial, Setting]],
+               g: np.ndarray) -> tuple[list[PathTF], list[Term]]:
+    """The gains ``final_gains`` fitted, put back: the paths' terms first (in order), then each kept setting's."""
+    out, k = [], 0
+    for p in paths:
+        n = len(p.terms)
+        out.append(replace(p, terms=tuple(t.with_gain(float(x)) for t, x in zip(p.terms, g[k: k + n], strict=True))))
+        k += n
+    terms = []
+    for t, setting in kept:
+        gs = g[k: k + len(setting.components)]
+        k += len(setting.components)
+        contrib = sum((gi * stack.column(c, setting.chain) for gi, c in zip(gs, setting.components, strict=True)),
+                      np.zeros(stack.n))
+        terms.append(Term(trial=t, axis=axis, setting=setting, gains=np.asarray(gs), contribution=contrib))
+    return out, terms
 
 
 def unit_columns(stack: Stack, paths: Sequence[PathTF]) -> list[np.ndarray]:
