@@ -106,7 +106,7 @@ def main(argv: list[str]) -> int:
         # fits and filters again on another CPU's arithmetic (another OpenBLAS kernel): what a user on
         # other hardware gets must pass the same physical tolerances, not only this machine's digits
         print(f"dev.py: the numeric tests again with OPENBLAS_CORETYPE={OTHER_KERNEL}", flush=True)
-        other_cpu = _timed("numeric again", [str(PY), "-m", "pytest", "-q", *workers, "-m", "numeric"],
+        other_cpu = _timed("numeric again", [str(PY), "-m", "pytest", "-q", *workers, "-m", "numeric and not plumbing"],
                            env={**os.environ, "OPENBLAS_CORETYPE": OTHER_KERNEL})
     return lint or tests or other_cpu
 

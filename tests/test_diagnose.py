@@ -148,6 +148,7 @@ def test_nothing_is_accepted_when_nothing_is_missing(bench, baseline):
 
 
 # ------------------------------------------------------------------------------------------------ CLI ---
+@pytest.mark.plumbing
 def test_cli_writes_report_figures_and_a_model_estimate_accepts(tmp_path, baseline, room_case, capsys):
     seen, fresh, _ = room_case
     seen_csv, fresh_csv = write_csv(seen, tmp_path / "seen.csv"), write_csv(fresh[1], tmp_path / "fresh.csv")
@@ -206,6 +207,7 @@ def test_real_spindle_recording_runs_and_says_what_it_cannot_conclude(tmp_path, 
     assert doc["held_out"]["after"]["z"]["rms_um"] <= doc["held_out"]["before"]["z"]["rms_um"]
 
 
+@pytest.mark.plumbing
 def test_real_lathe_recording_of_concatenated_days_runs(tmp_path, shared_data, capsys):
     from gateway.commands.diagnose import split_by
     from gateway.identify import identify

@@ -98,6 +98,7 @@ def test_a_run_that_starts_warm_is_fitted_with_free_decays(data):
     assert worst(fitted, held) < 0.5 * worst(as_rest, held)
 
 
+@pytest.mark.plumbing
 def test_command_line(data, sim_csv_dir, tmp_path, capsys):
     profile, _, _, _ = data
     exps = [str(sim_csv_dir / f"{n}.csv") for n in EXPERIMENTS]

@@ -102,6 +102,7 @@ def test_estimate_warns_where_the_model_extrapolates(identified):
     assert not [n for n in paper_kind.notes if "coverage" in n]
 
 
+@pytest.mark.plumbing
 def test_identify_with_a_bundled_profile_never_writes_into_the_installed_package(sim_csv_dir, tmp_path, monkeypatch,
                                                                                   capsys):
     # a new user's first identify names the bundled profile: its model file sits inside the package
