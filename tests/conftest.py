@@ -85,6 +85,30 @@ def _no_leaked_threads():
     assert not leaked, f"test leaked threads: {[t.name for t in leaked]}"
 
 
+@pytest.fixture(autouse=True)
+def _no_leaked_signal_state():
+    """A test that leaves this worker's SIGINT/SIGTERM handler or signal mask changed fails (and both are put
+    back): every later child process would inherit an ignored or blocked Ctrl-C (a double Ctrl-C test of
+    ``cncgw run`` timed out in full-suite runs, never alone, with the child's SIGINTs without effect)."""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    yield
+    changed = [f"{s.name} handler {h!r} -> {signal.getsignal(s)!r}" for s, h in handlers.items()
+               if signal.getsignal(s) != h]
+    now = signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+    if now != mask:
+        changed.append(f"signal mask {sorted(m.name for m in mask)} -> {sorted(m.name for m in now)}")
+    for s, h in handlers.items():
+        if h is not None:
+            signal.signal(s, h)
+    assert not changed, f"test left this process's signal state changed: {'; '.join(changed)}"
+
+
 @pytest.fixture
 def shared_data() -> Path:
     """The real recordings in ../shared/data (never copied into the repository)."""
