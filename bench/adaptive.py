@@ -415,6 +415,31 @@ def _floats(s: str) -> list[float]:
     return [float(x) for x in s.split(",") if x]
 
 
+def settings_overrides(items: list[str]) -> dict:
+    """``NAME=VALUE`` strings (``--set``) as DriftSettings fields: a number, ``none``, or numbers for a tuple."""
+    extra: dict = {}
+    default = DriftSettings()
+    for item in items:
+        name, _, value = item.partition("=")
+        if name not in DriftSettings.__dataclass_fields__ or not value:
+            raise ValueError(f"{item!r}: expected NAME=VALUE with NAME a field of DriftSettings")
+        old = getattr(default, name)
+        try:
+            if value.lower() == "none":
+                extra[name] = None
+            elif isinstance(old, tuple):
+                extra[name] = tuple(_floats(value))
+            elif isinstance(old, bool):
+                extra[name] = value.lower() in ("1", "true", "yes", "on")
+            elif isinstance(old, int):
+                extra[name] = int(value)
+            else:
+                extra[name] = float(value)
+        except ValueError as e:
+            raise ValueError(f"{item!r}: {e}") from None
+    return extra
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="one seed, variants 0 and 1, 2 days")
@@ -449,26 +474,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.plot:
         args.plot.mkdir(parents=True, exist_ok=True)
 
-    extra = {}
-    for item in args.set:
-        name, _, value = item.partition("=")
-        if name not in DriftSettings.__dataclass_fields__ or not value:
-            ap.error(f"--set {item!r}: expected NAME=VALUE with NAME a field of DriftSettings")
-        old = getattr(DriftSettings(), name)
-        try:
-            if value.lower() == "none":
-                extra[name] = None
-            elif isinstance(old, tuple):
-                extra[name] = tuple(_floats(value))
-            elif isinstance(old, bool):
-                extra[name] = value.lower() in ("1", "true", "yes", "on")
-            elif isinstance(old, int):
-                extra[name] = int(value)
-            else:
-                extra[name] = float(value)
-        except ValueError as e:
-            ap.error(f"--set {item!r}: {e}")
     try:
+        extra = settings_overrides(args.set)
         settings = DriftSettings(**{"extrapolation_gain_sds": tuple(args.extrapolation_gain_sds),
                                     "extrapolation_prior": args.extrapolation_prior,
                                     "gain_correlation": not args.diagonal, **extra})
