@@ -274,6 +274,24 @@ def test_settings_are_checked():
         DriftSettings(reanchor_after=1)
     with pytest.raises(ValueError, match=r"extrapolation_gain_sds must be one or more values >= 0. Got \(0.0, -0.1\)"):
         DriftSettings(extrapolation_gain_sds=(0.0, -0.1))
+    with pytest.raises(ValueError, match=r"gain_scale_prior_decades must be None or finite and > 0. Got 0.0"):
+        DriftSettings(gain_scale_prior_decades=0.0)
+
+
+def test_gain_scale_prior_weighs_the_identifications_covariance_most():
+    """With gain_scale_prior_decades the bank's weights start log-normal about the identification's own gain sd."""
+    model = small_model()
+    even = AdaptiveEstimator(model, window_s=DT)
+    prior = AdaptiveEstimator(model, window_s=DT, settings=DriftSettings(gain_scale_prior_decades=0.5))
+    for est in (even, prior):
+        est.step(np.zeros((1, 1)), DT)
+    g = DriftSettings().gain_scales  # variance factors 0.01 .. 100: sd factors 0.1 .. 10
+    w_even = even.weights()[0].reshape(-1, len(g)).sum(axis=0)
+    w_prior = prior.weights()[0].reshape(-1, len(g)).sum(axis=0)
+    np.testing.assert_allclose(w_even, 1.0 / len(g), rtol=1e-9)
+    want = np.exp(-0.5 * (np.log10(np.sqrt(g)) / 0.5) ** 2)
+    np.testing.assert_allclose(w_prior, want / want.sum(), rtol=1e-9)
+    assert w_prior[g.index(1.0)] > 0.4 and w_prior[g.index(100.0)] < 0.06  # a tenfold sd is a 2 sigma event
 
 
 def test_live_contributions_equal_batch_and_sum_to_the_estimate():
