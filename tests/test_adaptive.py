@@ -291,7 +291,8 @@ def test_gain_scale_prior_weighs_the_identifications_covariance_most():
     np.testing.assert_allclose(w_even, 1.0 / len(g), rtol=1e-9)
     want = np.exp(-0.5 * (np.log10(np.sqrt(g)) / 0.5) ** 2)
     np.testing.assert_allclose(w_prior, want / want.sum(), rtol=1e-9)
-    assert w_prior[g.index(1.0)] > 0.4 and w_prior[g.index(100.0)] < 0.06  # a tenfold sd is a 2 sigma event
+    assert w_prior[g.index(1.0)] > 0.4
+    assert w_prior[g.index(100.0)] < 0.06  # a tenfold sd is a 2 sigma event
 
 
 def test_live_contributions_equal_batch_and_sum_to_the_estimate():
