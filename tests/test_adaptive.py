@@ -337,3 +337,27 @@ def test_on_the_simulated_machine_with_the_room_cycle(bench):
     assert updated < alone / 3
     assert updated < zap / 3
     assert np.all(res.coverage >= 0.85), res.coverage
+
+
+def test_ceiling_bench_draws_the_filters_own_disturbance():
+    """bench/adaptive_ceiling.py's truth is the filter's state space: at rest its variance after T is scale x Q(T)."""
+    spec = importlib.util.spec_from_file_location("bench_adaptive_ceiling", ROOT / "bench" / "adaptive_ceiling.py")
+    ceiling = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = ceiling
+    try:
+        spec.loader.exec_module(ceiling)
+        from gateway.adaptive.filter import _drift_model
+
+        s = DriftSettings()
+        n_in, n_w, draws = 2, 120, 300
+        C = np.zeros((3, n_in, n_w))  # at rest: no activity, the gains multiply nothing
+        gsd, gcorr = np.full((3, n_in), 0.05), np.broadcast_to(np.eye(n_in), (3, n_in, n_in))
+        scales = np.array([1e-3, 1.0, 8.0])
+        rng = np.random.default_rng(11)
+        ends = np.array([ceiling.draw_truth(C, s, gsd, gcorr, scales, rng)[:, -1] for _ in range(draws)])
+        # the first window starts at 0, so n_w - 1 steps of the window's dynamics
+        want = scales * _drift_model(s, (n_w - 1) * DT)[1][0, 0]
+        np.testing.assert_allclose(ends.var(axis=0), want, rtol=0.3)  # 300 draws: +-8 % sd
+        assert ceiling.interval_sd_um(s, 1.0, 2.0) == pytest.approx(math.sqrt(_drift_model(s, 7200.0)[1][0, 0]))
+    finally:
+        del sys.modules[spec.name]
