@@ -186,13 +186,17 @@ class Stack:
         return cols
 
     def decays(self, tau_s: float) -> list[np.ndarray]:
-        """exp(-t / tau) from each recording's start: an unknown initial state of a mode with ``tau_s``."""
+        """exp(-t / tau) from each recording's start: an unknown initial state of a mode with ``tau_s`` (cached)."""
+        key = ("decays", tau_s)
+        if key in self._cache:
+            return self._cache[key]  # type: ignore[return-value]
         t = self.rel_time_s()
         cols = []
         for a, b in self.bounds:
             c = np.zeros(self.n)
             c[a:b] = np.exp(-(t[a:b] + self.dt_s) / tau_s)
             cols.append(c)
+        self._cache[key] = cols
         return cols
 
     def ramps(self, tau_s: float = 0.0) -> list[np.ndarray]:

@@ -27,7 +27,7 @@ import numpy as np
 
 from gateway.diagnose.data import Stack
 from gateway.diagnose.hypotheses import Hypothesis, Setting
-from gateway.diagnose.select import Fold, GridFit, choose, grid_scores, holm, jackknife_sd, one_sided_p
+from gateway.diagnose.select import Fold, GridFit, GridScores, choose, grid_scores, holm, jackknife_sd, one_sided_p
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -161,7 +161,8 @@ def setting_columns(stack: Stack, setting: Setting) -> tuple[list[np.ndarray], l
 def _design(stack: Stack, setting: Setting, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     phys, nuis = setting_columns(stack, setting)
     cols = phys + nuis
-    X = np.column_stack([c[rows] for c in cols]) if cols else np.zeros((len(rows), 0))
+    every = len(rows) == stack.n  # every window measured: the columns as they are (no copy of each first)
+    X = np.column_stack(cols if every else [c[rows] for c in cols]) if cols else np.zeros((len(rows), 0))
     signs = np.zeros(len(cols))
     signs[: len(setting.signs)] = setting.signs
     limits = np.full(len(cols), np.inf)
@@ -181,6 +182,7 @@ class _Axis:
     artefacts: list[np.ndarray]
     peak_um: float = math.inf
     _fold: Fold | None = None
+    generation: int = 0  #: how many times columns were fixed: a hypothesis's scores hold while it stays the same
 
     @property
     def fold(self) -> Fold:
@@ -193,6 +195,7 @@ class _Axis:
         """Columns every later fit carries (an accepted hypothesis)."""
         self.fixed += list(cols)
         self._fold = None
+        self.generation += 1
 
 
 def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
@@ -237,12 +240,14 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
     accepted: list[Trial] = []
     remaining = list(hypotheses)
     sse_rounds: dict[str, list[float]] = {a.name: [] for a in axes}
+    # an axis on which the round before accepted nothing has the same fixed columns: its grid scores are the same
+    scored: dict[tuple[str, int, int], GridScores] = {}
     for rnd in range(1, options.max_rounds + 1):
         round_trials = []
         for h in remaining:
             if progress:
                 progress(f"round {rnd}: {h.key}")
-            ev = _evidence(stack, [ax for ax in axes if h.settings.get(ax.name)], h)
+            ev = _evidence(stack, [ax for ax in axes if h.settings.get(ax.name)], h, scored)
             if ev:
                 # present if it improves at least one axis: Bonferroni over the axes
                 p = min(1.0, len(ev) * min(e.p for e in ev.values()))
@@ -300,13 +305,23 @@ def _final_terms(stack: Stack, ax: _Axis, offsets: Sequence[np.ndarray], accepte
     return out
 
 
-def _evidence(stack: Stack, axes: Sequence[_Axis], h: Hypothesis) -> dict[str, AxisEvidence]:
-    """Cross-validate ``h`` on every axis, machine-wide parameters chosen jointly over the axes."""
+def _evidence(stack: Stack, axes: Sequence[_Axis], h: Hypothesis,
+              scored: dict[tuple[str, int, int], GridScores] | None = None) -> dict[str, AxisEvidence]:
+    """Cross-validate ``h`` on every axis, machine-wide parameters chosen jointly over the axes.
+
+    ``scored``: grid scores already computed, by (axis, its generation of fixed columns, ``id(h)``).
+    """
     scores = {}
     for ax in axes:
+        key = (ax.name, ax.generation, id(h))
+        if scored is not None and key in scored:
+            scores[ax.name] = scored[key]
+            continue
         designs = [_design(stack, s, ax.rows) for s in h.settings[ax.name]]
         scores[ax.name] = grid_scores(ax.fold, [d[0] for d in designs], signs=[d[1] for d in designs],
                                       limits=[d[2] for d in designs])
+        if scored is not None:
+            scored[key] = scores[ax.name]
     keys = None
     if h.shared:
         keys = {ax.name: [tuple(s.param(k) for k in h.shared) for s in h.settings[ax.name]] for ax in axes}
@@ -443,24 +458,31 @@ def _held(stack: Stack, ax: _Axis, offsets: Sequence[np.ndarray], accepted: Sequ
 
     def predict(trials: Sequence[Trial], with_artefacts: bool) -> np.ndarray:
         out = np.full(len(rows), np.nan)
+        designs: dict[tuple[int, ...], np.ndarray] = {}  # folds that chose the same settings share one design
         for f in range(k):
-            cols = list(base_cols)
+            chosen = []
             for t in trials:
                 e = t.evidence.get(ax.name)
                 if e is None or not e.included or (t.hypothesis.artefact and not with_artefacts):
                     continue
-                idx = int(e.fit.theta_fold[f])
-                s = t.hypothesis.settings[ax.name][idx] if idx >= 0 else None
-                if s is None:
-                    continue
-                phys, nuis = setting_columns(stack, s)
-                cols += [c[rows] for c in phys + nuis]
-            if with_artefacts:
-                cols += [c[rows] for c in ax.artefacts]  # steps found before the search
-            D = np.column_stack(cols)
-            scale = np.linalg.norm(D, axis=0)
-            scale[scale == 0] = 1.0
-            Ds = D / scale
+                chosen.append((t, int(e.fit.theta_fold[f])))
+            key = tuple(idx for _, idx in chosen)
+            Ds = designs.get(key)
+            if Ds is None:
+                cols = list(base_cols)
+                for t, idx in chosen:
+                    if idx < 0:
+                        continue
+                    phys, nuis = setting_columns(stack, t.hypothesis.settings[ax.name][idx])
+                    cols += [c[rows] for c in phys + nuis]
+                if with_artefacts:
+                    cols += [c[rows] for c in ax.artefacts]  # steps found before the search
+                D = np.column_stack(cols)
+                scale = np.linalg.norm(D, axis=0)
+                scale[scale == 0] = 1.0
+                Ds = D / scale
+                if len(designs) < 4:
+                    designs[key] = Ds
             tr = b != f
             G = Ds[tr].T @ Ds[tr] + 1e-9 * np.eye(Ds.shape[1])
             beta = np.linalg.solve(G, Ds[tr].T @ r[tr])

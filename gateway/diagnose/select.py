@@ -155,9 +155,11 @@ def _run_sums(fold: Fold, XT: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarra
     xs[xs == 0] = 1.0
     Xs = XT / xs[:, None]
     XF = np.zeros((fold.k + 1, n_set * p, q))
-    for a, b, j, nz, Fb in fold.runs:  # columns (fixed or the settings') that are zero in a run add nothing
+    # per regressor and contiguous run of a block: whether it is non-zero there
+    live = np.add.reduceat(Xs != 0.0, fold.starts, axis=-1)
+    for i, (a, b, j, nz, Fb) in enumerate(fold.runs):  # columns (fixed or the settings') zero in a run add nothing
         Xb = Xs[:, a:b]
-        moving = np.flatnonzero(np.any(Xb != 0.0, axis=1))
+        moving = np.flatnonzero(live[:, i])
         if len(moving) < 0.8 * len(Xb):
             if not len(moving):
                 continue
@@ -172,10 +174,15 @@ def _run_sums(fold: Fold, XT: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarra
             XF[j][:, nz] += Xb @ Fb
     Xr = fold.run_sums(Xs * fold.r)  # (G p, K + 1)
     X3 = Xs.reshape(n_set, p, -1)
-    XX = np.empty((fold.k + 1, n_set, p, p))
+    # the runs in which regressor u of any setting is not zero: a recording's nuisance (its initial state, its
+    # drift) is zero in every other recording, and two regressors that are never non-zero in the same run have
+    # a product of exact zeros, whose sums are zero (computed, they would be zero too, up to the sign of zero)
+    support = live.reshape(n_set, p, -1).any(axis=0) if p > 1 else np.ones((p, 1), bool)
+    XX = np.zeros((fold.k + 1, n_set, p, p))
     for u in range(p):
         for v in range(u, p):
-            XX[:, :, u, v] = XX[:, :, v, u] = fold.run_sums(X3[:, u] * X3[:, v]).T
+            if u == v or np.any(support[u] & support[v]):
+                XX[:, :, u, v] = XX[:, :, v, u] = fold.run_sums(X3[:, u] * X3[:, v]).T
     return (XF.reshape(fold.k + 1, n_set, p, q), XX, Xr.reshape(n_set, p, fold.k + 1).transpose(2, 0, 1),
             xs.reshape(n_set, p))
 

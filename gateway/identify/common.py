@@ -7,6 +7,7 @@ constants) and linear ones (gains).
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -176,18 +177,36 @@ def theta_from_time_constants(structure: str, taus: Sequence[float], bounds: Bou
     return [float(np.clip(v, a + 1e-6, b - 1e-6)) for v, a, b in zip(th, lo, hi, strict=True)]
 
 
+#: first-order responses a :func:`unit_responses` memo keeps (a two-mode path's Jacobian: five time constants)
+MEMO_RESPONSES = 8
+
+
 def unit_responses(structure: str, theta: Sequence[float], du: np.ndarray, dt_s: float,
-                   delay_s: float = 0.0) -> list[np.ndarray]:
+                   delay_s: float = 0.0, memo: OrderedDict[tuple[float, float], np.ndarray] | None = None
+                   ) -> list[np.ndarray]:
     """Responses of each unit-gain term of the structure to ``du`` (E, N): the regressors of its gains.
 
     Fast paths, same numbers as :class:`~gateway.model.discrete.Section`: a first-order term is filtered
     with its closed-form coefficients, and a second order with distinct real poles is split into partial
     fractions, 1/((t1 s+1)(t2 s+1)) = (t2/(t2 s+1) - t1/(t1 s+1)) / (t2 - t1), exact because the ZOH
     discretisation is linear in the transfer function.
+
+    ``memo``: first-order responses to this same ``du`` by (time constant, delay), the last few kept: a
+    Jacobian moves one time constant of a two-mode path at a time, and the other one's response is the same
+    array again (not to be written to).
     """
     def first(tau: float) -> np.ndarray:
+        key = (tau, delay_s)
+        if memo is not None and key in memo:
+            memo.move_to_end(key)
+            return memo[key]
         num, den = first_order_coefficients(tau, dt_s, delay_s)
-        return scipy.signal.lfilter(num, den, du, axis=-1)
+        out = scipy.signal.lfilter(num, den, du, axis=-1)
+        if memo is not None:
+            memo[key] = out
+            if len(memo) > MEMO_RESPONSES:
+                memo.popitem(last=False)
+        return out
 
     if structure == "first_order":
         return [first(math.exp(theta[0]))]

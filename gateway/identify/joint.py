@@ -144,6 +144,7 @@ class AxisProblem:
         # mean (Frisch-Waugh), so the QR and the Jacobian carry the path columns only
         self._counts = self.valid.sum(axis=1)
         self._starts = np.concatenate([[0], np.cumsum(self._counts)[:-1]])[self._counts > 0]
+        self._stops = self._starts + self._counts[self._counts > 0]
         # weighted least squares: every row scaled by the square root of its weight (probe points by their
         # stated uncertainty, gateway.identify.api); with all weights 1 the arithmetic is the unweighted one
         w2 = es.weights(axis_index)
@@ -163,6 +164,7 @@ class AxisProblem:
         # from several starts over many paths can then settle in another local minimum (measured: diagnosis's
         # re-identification of z on room-recorded variant 2 moved its fresh-day RMS 4.7 -> 5.3 um)
         self._extra_q: np.ndarray | None = None
+        self._extra_cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         if self.extra.shape[1] and project_extra:
             E = self.demean(self.extra)
             escale = np.linalg.norm(E, axis=0)
@@ -177,18 +179,25 @@ class AxisProblem:
         # the racing restarts an optimizer where the last one stopped: its first residual and Jacobian
         # were computed at the end of the round before (a few entries, each a design matrix's worth)
         self._memo: OrderedDict[tuple, object] = OrderedDict()
+        # where each fit ended (residual and Jacobian): the racing of :meth:`best_of` continues a start from its
+        # end point a round later, after the other starts' evaluations pushed it out of the memo above; the
+        # same numbers are taken again, not recomputed
+        self._ends: OrderedDict[tuple, object] = OrderedDict()
         # per factor: the experiments in which it moves, in groups of similar length (a 12 h experiment is not
         # filtered over the padding up to a 4-day production recording), and where their valid samples go
         position = np.full(self.valid.shape, -1)
         position[self.valid] = np.arange(self.n)
-        self._moving: list[list[tuple[np.ndarray, int, np.ndarray, np.ndarray]]] = []
+        #: per factor and group: its inputs (experiments, samples), where the valid samples are and go, and the
+        #: group's last first-order responses (:func:`unit_responses`)
+        self._moving: list[list[tuple[np.ndarray, np.ndarray, np.ndarray, OrderedDict]]] = []
         for j in range(len(es.factors)):
             rows = np.flatnonzero(np.any(es.du[j] != 0.0, axis=1))
             groups = []
             for g in _length_groups(rows, es.lengths):
                 length = int(es.lengths[g].max())
                 valid = self.valid[g, :length]
-                groups.append((g, length, np.flatnonzero(valid), position[g, :length][valid]))
+                groups.append((es.du[j][g, :length], np.flatnonzero(valid), position[g, :length][valid],
+                               OrderedDict()))
             self._moving.append(groups)
 
     # -- the design matrix and the projected residual --------------------------------------------------
@@ -196,9 +205,8 @@ class AxisProblem:
         # a factor moves in a few experiments only; its response is exactly zero in the others (inputs are
         # deviations from rest), so only those are filtered
         out = [np.zeros(self.n) for _ in range(n_linear(structure))]
-        for rows, length, src, dest in self._moving[j]:
-            for col, resp in zip(out, unit_responses(structure, theta, self.es.du[j][rows, :length], self.es.dt_s),
-                                 strict=True):
+        for du, src, dest, memo in self._moving[j]:
+            for col, resp in zip(out, unit_responses(structure, theta, du, self.es.dt_s, memo=memo), strict=True):
                 col[dest] = resp.ravel().take(src)
         return out
 
@@ -218,8 +226,18 @@ class AxisProblem:
 
         The residual maker of the (weighted) offset columns: every fitted quantity lives in these rows.
         """
-        centred = m - np.repeat(self._group_means(m), self._counts[self._counts > 0], axis=0)
-        return centred if self._unweighted else self.w[:, None] * centred
+        return self._demeaned(m)[0]
+
+    def _demeaned(self, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(:meth:`demean` of ``m``, its per-experiment means): a solve needs both, computed once."""
+        means = self._group_means(m)
+        # each experiment's rows less its means, in place: the numbers of ``m - repeat(means)`` without the copy
+        centred = np.empty(m.shape)
+        for g, (a, b) in enumerate(zip(self._starts, self._stops, strict=True)):
+            np.subtract(m[a:b], means[g], out=centred[a:b])
+        if not self._unweighted:
+            centred *= self.w[:, None]
+        return centred, means
 
     def project_extra(self, m: np.ndarray) -> np.ndarray:
         """Demeaned columns ``m`` less their projection on the (demeaned) extra columns."""
@@ -238,28 +256,52 @@ class AxisProblem:
         if self._extra_q is not None:
             return self._solve_projected(paths)
         offsets = np.zeros(self.es.n_exp)
-        if self.extra.shape[1]:
-            paths = np.column_stack([paths, self.extra])
-        if paths.shape[1] == 0:
+        p, m = paths.shape[1], self.extra.shape[1]
+        if p + m == 0:
             offsets[self._counts > 0] = self._y_means
             return offsets, self.y_demeaned.copy(), np.zeros((self.n, 0))
-        X = self.demean(paths)
-        scale = np.linalg.norm(X, axis=0)
-        scale[scale == 0] = 1.0
-        Q, R = scipy.linalg.qr(X / scale, mode="economic", check_finite=False)
+        if p >= 2 and m >= 2:
+            # the extra columns are the same in every solve: demeaned and scaled once. Column by column these
+            # are the numbers the whole matrix gives (sums down each column of a matrix of two columns or more
+            # run the same way however many columns there are); the QR below is the same factorisation
+            Xp, means_p = self._demeaned(paths)
+            scale_p = np.linalg.norm(Xp, axis=0)
+            scale_p[scale_p == 0] = 1.0
+            es, scale_e, means_e = self._extra_scaled()
+            Xs = np.empty((self.n, p + m), order="F")
+            np.divide(Xp, scale_p, out=Xs[:, :p])
+            Xs[:, p:] = es
+            scale = np.concatenate([scale_p, scale_e])
+            means = np.concatenate([means_p, means_e], axis=1)
+        else:
+            X, means = self._demeaned(np.column_stack([paths, self.extra]) if m else paths)
+            scale = np.linalg.norm(X, axis=0)
+            scale[scale == 0] = 1.0
+            # scaled straight into LAPACK's column order, factorised in place (no copies; the same numbers)
+            Xs = np.divide(X, scale, out=np.empty(X.shape, order="F"))
+        Q, R = scipy.linalg.qr(Xs, mode="economic", check_finite=False, overwrite_a=True)
         qty = Q.T @ self.y_demeaned
         # a (near-)rank-deficient design happens when a path's response is nearly another's; keep going
         diag = np.abs(np.diag(R))
         keep = diag > 1e-10 * max(diag.max(), 1e-300)
-        coef = np.zeros(X.shape[1])
+        coef = np.zeros(p + m)
         if keep.all():
             coef = scipy.linalg.solve_triangular(R, qty, check_finite=False)
         else:
             coef[keep] = np.linalg.lstsq(R[np.ix_(keep, keep)], qty[keep], rcond=None)[0]
         coef = coef / scale
-        offsets[self._counts > 0] = self._y_means - self._group_means(paths) @ coef
+        offsets[self._counts > 0] = self._y_means - means @ coef
         resid = self.y_demeaned - Q @ qty
         return np.concatenate([coef, offsets]), resid, Q
+
+    def _extra_scaled(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(the extra columns demeaned and scaled to unit norm, in column order; their scales; their means)."""
+        if self._extra_cache is None:
+            E, means = self._demeaned(self.extra)
+            scale = np.linalg.norm(E, axis=0)
+            scale[scale == 0] = 1.0
+            self._extra_cache = (np.divide(E, scale, out=np.empty(E.shape, order="F")), scale, means)
+        return self._extra_cache
 
     def _solve_projected(self, paths: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`solve` with the extra columns already factorised: only the path columns' QR is new."""
@@ -269,8 +311,9 @@ class AxisProblem:
         y = self._y_projected
         coef = np.zeros(p)
         Q = np.zeros((self.n, 0))
+        means = None
         if p:
-            X = self.demean(paths)
+            X, means = self._demeaned(paths)
             scale = np.linalg.norm(X, axis=0)
             scale[scale == 0] = 1.0
             Xs = X / scale
@@ -289,8 +332,8 @@ class AxisProblem:
             resid = y.copy()
             extra_rhs = self._qty_extra
         extra = scipy.linalg.solve_triangular(self._extra_r, extra_rhs, check_finite=False) / self._extra_scale
-        means = self._group_means(paths) @ coef if p else 0.0
-        offsets[self._counts > 0] = self._y_means - means - self._extra_means @ extra
+        shift = means @ coef if means is not None else 0.0
+        offsets[self._counts > 0] = self._y_means - shift - self._extra_means @ extra
         return np.concatenate([coef, extra, offsets]), resid, Q
 
     def fit(self, structures: Sequence[str], theta0: Sequence[Sequence[float]], *,
@@ -356,6 +399,7 @@ class AxisProblem:
                     "too large to filter; check the recordings' units and outliers") from None
             x, nfev, converged = sol.x, sol.nfev, sol.status > 0
         thetas, per_path, coef, r, _ = evaluate(x)
+        self._keep_end(structures, x)
         sizes_lin = [len(cols) for cols in per_path]
         gains = _split(coef, sizes_lin)
         k = sum(sizes_lin)
@@ -370,10 +414,20 @@ class AxisProblem:
         if key in self._memo:
             self._memo.move_to_end(key)
             return self._memo[key]
-        value = self._memo[key] = compute()
+        value = self._memo[key] = self._ends[key] if key in self._ends else compute()
         if len(self._memo) > size:
             self._memo.popitem(last=False)
         return value
+
+    def _keep_end(self, structures: tuple[str, ...], x: np.ndarray, size: int = 16) -> None:
+        """Keep the residual and Jacobian at a fit's end point (those computed) for a fit continuing from it."""
+        for kind in ("r", "J"):
+            key = (kind, structures, x.tobytes())
+            if key in self._memo:
+                self._ends[key] = self._memo[key]
+                self._ends.move_to_end(key)
+        while len(self._ends) > size:
+            self._ends.popitem(last=False)
 
     def best_of(self, structures: Sequence[str], starts: Sequence[Sequence[Sequence[float]]], *,
                 round_nfev: int = 5, max_rounds: int = 8) -> AxisFit:
