@@ -12,6 +12,13 @@ median scan, with what the link can do::
     10.0.0.5:502: one scan is 1 request (fc4 0..8), measured at start over 30 scans: median 4.1 ms, p95
     4.6 ms, max 5.2 ms a scan, so it sustains at most 244 Hz: set devices.adc.period_s >= 0.0045
 
+A CPU busy with something else at start (a loaded edge PC, a restart while another service starts) makes
+a link look slower than it is, and a refusal is final (a service manager does not restart into it): a
+period the first measurement says the link cannot hold is measured again, up to ``attempts`` times
+``pause_s`` apart, and the best median counts. A link that is too slow is too slow every time. (Seen: at
+load 5 the loopback to the simulated board measured 3.7 ms a scan and refused the restart of a 2 ms
+recording that had held it seconds before.)
+
 A device that cannot be reached at start is not refused (it may come up later, and the runner retries
 it): the check is logged as skipped. A median that fits with a slower tail is accepted: those reads
 overrun and are counted as skipped ticks in the windows' quality (on a loaded 2-core PC the loopback scan
@@ -21,8 +28,9 @@ had a 0.2 ms median and a 2.4 ms p95).
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from drivers import registry
 from drivers.base import Driver, LinkBudget
@@ -49,7 +57,7 @@ class LinkCheck:
 
 def check_measured_links(profile: Profile, *, clock: Clock,
                          driver_factories: Mapping[str, Callable[[], Driver]] | None = None,
-                         scans: int = 30) -> list[LinkCheck]:
+                         scans: int = 30, attempts: int = 3, pause_s: float = 0.5) -> list[LinkCheck]:
     """Measure every network link of ``profile`` (see the module docstring); raise if one cannot hold its period."""
     factories = dict(driver_factories or {})
     checks: list[LinkCheck] = []
@@ -63,7 +71,8 @@ def check_measured_links(profile: Profile, *, clock: Clock,
             continue  # the runner reports it, once per retry, like any device that cannot be made
         if not getattr(cls, "measured_link", False):
             continue
-        checks.append(_measure(d, factories.get(d.name) or _factory(cls, d, profile, clock), scans))
+        checks.append(_measure(d, factories.get(d.name) or _factory(cls, d, profile, clock), scans,
+                               attempts=attempts, pause_s=pause_s))
     bad = [c for c in checks if not c.holds]
     if bad:
         raise ProfileError("\n".join(_refusal(profile, profile.device(c.device), c) for c in bad))
@@ -81,18 +90,33 @@ def _factory(cls: type[Driver], d: Device, profile: Profile, clock: Clock) -> Ca
     return lambda: cls(name=d.name, options=d.options, channels=pairs, clock=clock)
 
 
-def _measure(d: Device, make: Callable[[], Driver], scans: int) -> LinkCheck:
-    driver: Driver | None = None
-    try:
-        driver = make()
-        driver.open()
-        budget = driver.measure_link(scans=scans)
-    except DriverError as exc:
-        return LinkCheck(device=d.name, period_s=d.period_s, budget=None, skipped=str(exc))
-    finally:
-        if driver is not None:
-            driver.close()
-    return LinkCheck(device=d.name, period_s=d.period_s, budget=budget)
+def _measure(d: Device, make: Callable[[], Driver], scans: int, *, attempts: int, pause_s: float) -> LinkCheck:
+    """The device's link measured on a driver of its own; again (up to ``attempts``) while it seems too slow."""
+    best: LinkBudget | None = None
+    for attempt in range(1, max(1, attempts) + 1):
+        if attempt > 1:
+            log.info("%s: the link measured %.3g ms a scan against a %g ms period: measuring again (%d of %d)",
+                     d.name, best.min_period_s * 1000, d.period_s * 1000, attempt, attempts)
+            time.sleep(pause_s)
+        driver: Driver | None = None
+        try:
+            driver = make()
+            driver.open()
+            budget = driver.measure_link(scans=scans)
+        except DriverError as exc:
+            return LinkCheck(device=d.name, period_s=d.period_s, budget=None, skipped=str(exc))
+        finally:
+            if driver is not None:
+                driver.close()
+        if best is None or budget.min_period_s < best.min_period_s:
+            best = budget
+        if best.min_period_s <= d.period_s:
+            break
+    assert best is not None
+    if attempt > 1:
+        best = replace(best, detail=f"{best.detail} (the best of {attempt} measurements "
+                                                f"{pause_s:g} s apart)")
+    return LinkCheck(device=d.name, period_s=d.period_s, budget=best)
 
 
 def _refusal(profile: Profile, d: Device, c: LinkCheck) -> str:

@@ -274,6 +274,25 @@ def test_settings_are_checked():
         DriftSettings(reanchor_after=1)
     with pytest.raises(ValueError, match=r"extrapolation_gain_sds must be one or more values >= 0. Got \(0.0, -0.1\)"):
         DriftSettings(extrapolation_gain_sds=(0.0, -0.1))
+    with pytest.raises(ValueError, match=r"gain_scale_prior_decades must be None or finite and > 0. Got 0.0"):
+        DriftSettings(gain_scale_prior_decades=0.0)
+
+
+def test_gain_scale_prior_weighs_the_identifications_covariance_most():
+    """With gain_scale_prior_decades the bank's weights start log-normal about the identification's own gain sd."""
+    model = small_model()
+    even = AdaptiveEstimator(model, window_s=DT)
+    prior = AdaptiveEstimator(model, window_s=DT, settings=DriftSettings(gain_scale_prior_decades=0.5))
+    for est in (even, prior):
+        est.step(np.zeros((1, 1)), DT)
+    g = DriftSettings().gain_scales  # variance factors 0.01 .. 100: sd factors 0.1 .. 10
+    w_even = even.weights()[0].reshape(-1, len(g)).sum(axis=0)
+    w_prior = prior.weights()[0].reshape(-1, len(g)).sum(axis=0)
+    np.testing.assert_allclose(w_even, 1.0 / len(g), rtol=1e-9)
+    want = np.exp(-0.5 * (np.log10(np.sqrt(g)) / 0.5) ** 2)
+    np.testing.assert_allclose(w_prior, want / want.sum(), rtol=1e-9)
+    assert w_prior[g.index(1.0)] > 0.4
+    assert w_prior[g.index(100.0)] < 0.06  # a tenfold sd is a 2 sigma event
 
 
 def test_live_contributions_equal_batch_and_sum_to_the_estimate():
@@ -318,3 +337,27 @@ def test_on_the_simulated_machine_with_the_room_cycle(bench):
     assert updated < alone / 3
     assert updated < zap / 3
     assert np.all(res.coverage >= 0.85), res.coverage
+
+
+def test_ceiling_bench_draws_the_filters_own_disturbance():
+    """bench/adaptive_ceiling.py's truth is the filter's state space: at rest its variance after T is scale x Q(T)."""
+    spec = importlib.util.spec_from_file_location("bench_adaptive_ceiling", ROOT / "bench" / "adaptive_ceiling.py")
+    ceiling = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = ceiling
+    try:
+        spec.loader.exec_module(ceiling)
+        from gateway.adaptive.filter import _drift_model
+
+        s = DriftSettings()
+        n_in, n_w, draws = 2, 120, 300
+        C = np.zeros((3, n_in, n_w))  # at rest: no activity, the gains multiply nothing
+        gsd, gcorr = np.full((3, n_in), 0.05), np.broadcast_to(np.eye(n_in), (3, n_in, n_in))
+        scales = np.array([1e-3, 1.0, 8.0])
+        rng = np.random.default_rng(11)
+        ends = np.array([ceiling.draw_truth(C, s, gsd, gcorr, scales, rng)[:, -1] for _ in range(draws)])
+        # the first window starts at 0, so n_w - 1 steps of the window's dynamics
+        want = scales * _drift_model(s, (n_w - 1) * DT)[1][0, 0]
+        np.testing.assert_allclose(ends.var(axis=0), want, rtol=0.3)  # 300 draws: +-8 % sd
+        assert ceiling.interval_sd_um(s, 1.0, 2.0) == pytest.approx(math.sqrt(_drift_model(s, 7200.0)[1][0, 0]))
+    finally:
+        del sys.modules[spec.name]

@@ -54,6 +54,39 @@ def test_a_period_the_link_holds_passes_and_says_what_was_measured(slow, tmp_pat
     assert "measured at start over 30 scans" in check.budget.detail
 
 
+def test_a_link_slow_only_at_the_first_measurement_is_measured_again_and_passes(devices, tmp_path):
+    """A CPU busy at start makes a link look slower than it is; a refusal is final, so it is measured again."""
+    from drivers import registry
+
+    profile = live_profile(devices, tmp_path)  # 2 ms
+    (d,) = profile.devices
+    cls = registry.load(d.driver)
+    made = []
+
+    def make():  # the real driver on the real socket; the board answers late only while it is measured first
+        devices.adc_tcp.faults.reply_delay_s = DELAY_S if not made else 0.0
+        made.append(cls(name=d.name, options=d.options, channels=[(c.name, c.address) for c in profile.channels_of(d.name)],
+                        clock=RealClock()))
+        return made[-1]
+
+    try:
+        (check,) = check_measured_links(profile, clock=RealClock(), driver_factories={d.name: make}, pause_s=0.01)
+    finally:
+        devices.adc_tcp.faults.reply_delay_s = 0.0
+    assert len(made) == 2
+    assert check.holds
+    assert check.budget.min_period_s < DELAY_S
+    assert check.budget.detail.endswith("(the best of 2 measurements 0.01 s apart)")
+
+
+def test_a_link_too_slow_every_time_is_measured_three_times_then_refused(slow, tmp_path):
+    profile = live_profile(slow, tmp_path)
+    with pytest.raises(ProfileError) as err:
+        check_measured_links(profile, clock=RealClock(), pause_s=0.01)
+    assert "median " in str(err.value)
+    assert "a scan (the best of 3 measurements 0.01 s apart), so it sustains at most" in str(err.value)
+
+
 def test_loopback_without_delay_measures_well_under_a_millisecond_scale(devices, tmp_path):
     profile = live_profile(devices, tmp_path, device_keys={"period_s": 0.05})
     (check,) = check_measured_links(profile, clock=RealClock())

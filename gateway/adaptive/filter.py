@@ -91,6 +91,11 @@ class DriftSettings:
     #: little weight on a wide member, which widens the mixture's band little, is kept until probes beyond
     #: coverage say how much it is needed
     extrapolation_prior: float = 0.1
+    #: the bank's prior over the gain-prior scales: None, even over ``gain_scales``; a value sigma, log-normal
+    #: about 1 (identification's own covariance), log10 of the scale factor on the gains' sd ~ N(0, sigma^2)
+    #: (sigma = 0.5: a tenfold sd is a 2 sigma event). Where the probes cannot resolve the gains (an axis the
+    #: model already gets within the probes' noise) the bank's weights stay near this prior and the band is its
+    gain_scale_prior_decades: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("rate_sd_um_per_h", "rate_tau_h", "offset_tau_h", "weight_memory_h", "gain_memory_h",
@@ -109,6 +114,9 @@ class DriftSettings:
             v = getattr(self, name)
             if not v or not all(math.isfinite(x) and x > 0 for x in v):
                 raise ValueError(f"DriftSettings.{name} must be positive. Got {v!r}")
+        g = self.gain_scale_prior_decades
+        if g is not None and not (math.isfinite(g) and g > 0):
+            raise ValueError(f"DriftSettings.gain_scale_prior_decades must be None or finite and > 0. Got {g!r}")
         if self.reanchor_after < 2:
             raise ValueError(f"DriftSettings.reanchor_after must be >= 2. Got {self.reanchor_after!r}")
 
@@ -293,6 +301,11 @@ class AdaptiveEstimator:
             p = np.where(wide, s.extrapolation_prior / wide.sum(), (1.0 - s.extrapolation_prior) / (~wide).sum())
         else:
             p = np.full(n_m, 1.0 / n_m)
+        if s.gain_scale_prior_decades is not None:
+            # log10 of the factor on the gains' sd (gain_scales are variance factors), normal about 0
+            x = 0.5 * np.log10(g_scales) / s.gain_scale_prior_decades
+            p = p * np.exp(-0.5 * x * x)
+            p = p / p.sum()
         self.log_prior = np.log(p)
         self.logw = np.tile(self.log_prior, (n_a, 1))
         self.c = np.zeros((n_a, n_in))
