@@ -177,12 +177,22 @@ def _run_sums(fold: Fold, XT: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarra
     # the runs in which regressor u of any setting is not zero: a recording's nuisance (its initial state, its
     # drift) is zero in every other recording, and two regressors that are never non-zero in the same run have
     # a product of exact zeros, whose sums are zero (computed, they would be zero too, up to the sign of zero)
-    support = live.reshape(n_set, p, -1).any(axis=0) if p > 1 else np.ones((p, 1), bool)
+    support = live.reshape(n_set, p, -1).any(axis=0)
     XX = np.zeros((fold.k + 1, n_set, p, p))
     for u in range(p):
         for v in range(u, p):
-            if u == v or np.any(support[u] & support[v]):
+            common = support[u] & support[v]
+            if common.all():
                 XX[:, :, u, v] = XX[:, :, v, u] = fold.run_sums(X3[:, u] * X3[:, v]).T
+            elif common.any():
+                # only the runs where both can be non-zero: each run's sum is its own reduction, the same
+                # numbers as over the whole stack; the other runs' sums are zeros
+                seg = np.zeros((n_set, len(fold.starts)))
+                idx = np.flatnonzero(common)
+                for grp in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
+                    a, b = fold.starts[grp[0]], fold.stops[grp[-1]]
+                    seg[:, grp] = np.add.reduceat(X3[:, u, a:b] * X3[:, v, a:b], fold.starts[grp] - a, axis=-1)
+                XX[:, :, u, v] = XX[:, :, v, u] = (seg @ fold._slot_of_run).T
     return (XF.reshape(fold.k + 1, n_set, p, q), XX, Xr.reshape(n_set, p, fold.k + 1).transpose(2, 0, 1),
             xs.reshape(n_set, p))
 
