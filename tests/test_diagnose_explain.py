@@ -17,6 +17,8 @@ import test_diagnose_reidentify as plant
 
 from gateway.diagnose import diagnose
 from gateway.diagnose.explain import explain
+from gateway.diagnose.refit import path_corrections
+from gateway.diagnose.search import Options, search
 from gateway.identify import identify
 from gateway.model import FirstOrder, PathTF
 from gateway.replay import estimate
@@ -27,7 +29,7 @@ PLANT = plant.PLANT  # without the slow mode: the identified model's paths
 SLOW_UM_PER_RPM = 0.01  # a 24 h mode on the speed's path: 10 um at 1000 rpm held for days
 
 
-def _diagnosed(monkeypatch: pytest.MonkeyPatch, slow: bool):
+def _diagnosed(monkeypatch: pytest.MonkeyPatch, slow: bool, options: Options | None = None):
     """(diagnosis, fresh day) of the plant, with or without a 24 h mode, its model the plant's own paths."""
     truth = PLANT
     if slow:
@@ -43,7 +45,7 @@ def _diagnosed(monkeypatch: pytest.MonkeyPatch, slow: bool):
     # identified on the experiments (its info names them), its paths what the plant has without the slow mode
     base = identify(exps, factors=plant.F, axes=("z",), units=dict(truth.units), machine="synthetic").model
     base = base.with_paths([PathTF(axis=p.axis, factor=p.factor, terms=p.terms) for p in PLANT.paths.values()])
-    return diagnose(base, [*exps, *days]), fresh
+    return diagnose(base, [*exps, *days], options=options), fresh
 
 
 def _explain(d):
@@ -71,3 +73,22 @@ def test_without_a_slow_mode_nothing_explains_the_change(monkeypatch):
     assert ex.names == [], ex.verdict
     assert "explained" not in d.comparison.candidates or d.comparison.chosen != "explained"
     assert np.isfinite(d.comparison.candidates["identified"].sse)
+
+
+def test_a_term_that_passes_only_beside_free_paths_is_not_taken(monkeypatch):
+    # a 10 % bar lets nothing pass beside the free paths here; at 3 % eddy loss (speed^2 through the current's
+    # path) passes there as a stand-in for the 24 h mode the bank of lags (up to the experiments' 12 h) lacks
+    options = Options(min_gain=0.03)
+    d, _ = _diagnosed(monkeypatch, slow=True, options=options)
+    refit = d.results["refit"]
+    eddy = next(t for t in refit.trials if t.round == 1 and t.hypothesis.key == "eddy_loss:speed")
+    assert "eddy_loss:speed" not in [t.hypothesis.key for t in refit.accepted], eddy.verdict
+    # with the paths held at the identified time constants, the slow mode explains the data significantly better
+    assert eddy.verdict.startswith("not taken"), eddy.verdict
+    assert "slow_mode:speed predicts the held-out blocks significantly better" in eddy.verdict, eddy.verdict
+    # the same search without the check takes it: the check is what refuses it
+    arts = {a: [s.column(d.stack) for s in f.steps] for a, f in d.findings.items()}
+    sub = replace(options, alpha=options.alpha / 2, alpha_axis=options.alpha_axis / 2)
+    free = search(d.stack, d.hypotheses, block=d.block, artefacts=arts, options=sub,
+                  corrections=path_corrections(d.stack, d.model))
+    assert [t.hypothesis.key for t in free.accepted][:1] == ["eddy_loss:speed"]

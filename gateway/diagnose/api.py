@@ -22,7 +22,7 @@ from gateway import __version__
 from gateway.diagnose.adequacy import Adequacy, assess
 from gateway.diagnose.compare import Comparison, compare
 from gateway.diagnose.data import Stack, build_stack, recording_label
-from gateway.diagnose.explain import Explanation, explain
+from gateway.diagnose.explain import Explanation, explain, held_corrections
 from gateway.diagnose.extend import extend_model
 from gateway.diagnose.hypotheses import FactorInfo, Hypothesis, catalogue
 from gateway.diagnose.locate import (
@@ -171,7 +171,11 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
         sub = replace(options, alpha=options.alpha / len(tracks), alpha_axis=options.alpha_axis / len(tracks))
         results = {}
         for name, cols in tracks.items():
+            # beside free paths a term can pass by standing in for the freedom the bank lacks: the refit
+            # search takes it only if it survives with the paths held at the identified time constants
+            held = held_corrections(stack, model) if name == "refit" and options.held_check else None
             results[name] = search(stack, hyps, block=block, artefacts=artefacts, options=sub, corrections=cols,
+                                   held=held,
                                    progress=(lambda m, n=name: progress(f"{n}: {m}")) if progress else None)
         def writable(t: Trial) -> bool:  # a signal of unknown meaning is named, never written unchecked
             return not t.hypothesis.signal or t.hypothesis.signal in options.use_signals

@@ -45,6 +45,9 @@ class Options:
     #: a term on top of the frozen model: when the missing physics also shaped the identification runs,
     #: the paths are wrong and no added term can repair them
     reidentify: bool = True
+    #: a term the refit search finds beside free paths is taken only if it survives with the identified paths
+    #: held (see :func:`search`'s ``held``)
+    held_check: bool = True
     #: recorded columns whose meaning the user has checked: a hypothesis on any other recorded signal (not a
     #: room thermometer) can be named, but is never written into the model (it could be anything)
     use_signals: tuple[str, ...] = ()
@@ -201,6 +204,7 @@ class _Axis:
 def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
            artefacts: dict[str, list[np.ndarray]], options: Options,
            corrections: Sequence[np.ndarray] | Mapping[str, Sequence[np.ndarray]] = (),
+           held: Mapping[str, Sequence[np.ndarray]] | None = None,
            progress: Callable[[str], None] | None = None) -> SearchResult:
     """Forward selection over all axes; ``block`` gives each window's block (-1: not used).
 
@@ -209,6 +213,12 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
     hypothesis is judged by what it adds to a re-identified model. Its own "gain correction" of a path
     is then dropped: the corrections span it, and two collinear columns make neither gain meaningful.
     A mapping gives each axis its own corrections (its identified paths, :mod:`gateway.diagnose.explain`).
+
+    ``held``: per axis, the identified paths at their time constants (gains free). When given, a hypothesis
+    that passes beside ``corrections`` (the paths free) is taken only if it survives with the paths held
+    (:func:`_held_check`): a term can pass beside free paths by standing in for the freedom the bank of lags
+    lacks (a 24 h slow mode called eddy loss); it stands for the mechanism only when the data need it with
+    the paths held too, and no other named mechanism explains them significantly better there.
     """
     if corrections:
         hypotheses = [without_path_corrections(h) for h in hypotheses]
@@ -236,6 +246,14 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
         own = corrections.get(name, []) if isinstance(corrections, Mapping) else corrections
         fixed += [c[rows] for c in own if np.any(c[rows])]
         axes.append(_Axis(i, name, rows, r, block[rows], fixed, relevance, arts, peak_um=peaks.get(i, math.inf)))
+    # the same axes with the identified paths held in place of the corrections (the check of what passes)
+    held_axes: list[_Axis] = []
+    if held is not None:
+        for ax in axes:
+            fixed = [c[ax.rows] for c in offsets if np.any(c[ax.rows])] + [c[ax.rows] for c in ax.artefacts]
+            fixed += [c[ax.rows] for c in held.get(ax.name, []) if np.any(c[ax.rows])]
+            held_axes.append(_Axis(ax.index, ax.name, ax.rows, ax.r, ax.block, fixed, relevance, ax.artefacts,
+                                   peak_um=ax.peak_um))
     trials: list[Trial] = []
     accepted: list[Trial] = []
     remaining = list(hypotheses)
@@ -263,13 +281,23 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
             t.verdict = _judge(t, options)
         trials += round_trials
         passing = [t for t in round_trials if t.verdict == "passes"]
+        if held_axes and passing:
+            if progress:
+                progress(f"round {rnd}: the paths held")
+            named = [h for h in remaining if not h.artefact and not h.generic]
+            refused = _held_check(stack, passing, named, held_axes, options)
+            for t in passing:
+                if id(t) in refused:
+                    t.verdict = (f"not taken: passes with the paths free, but {refused[id(t)]}: it stands in for "
+                                 "the paths' freedom")
+            passing = [t for t in passing if id(t) not in refused]
         if not passing:
             break
         chosen = _occam(passing, round_trials, options)
         for t in passing:
             t.verdict = "accepted" if t is chosen else f"passes, but {chosen.hypothesis.key} explains more"
         accepted.append(chosen)
-        for ax in axes:
+        for ax in [*axes, *held_axes]:
             e = chosen.evidence.get(ax.name)
             if e is not None and e.included and e.setting is not None:
                 phys, nuis = setting_columns(stack, e.setting)
@@ -278,6 +306,52 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
     held = {ax.name: _held(stack, ax, offsets, accepted) for ax in axes}
     terms = {ax.name: _final_terms(stack, ax, offsets, accepted) for ax in axes}
     return SearchResult(trials=trials, accepted=accepted, held=held, terms=terms, sse_rounds=sse_rounds)
+
+
+def _held_check(stack: Stack, passing: Sequence[Trial], named: Sequence[Hypothesis], held_axes: Sequence[_Axis],
+                o: Options) -> dict[int, str]:
+    """The passing trials refused with the paths held (by ``id``), and why.
+
+    With the paths held at the identified time constants (gains free, the terms accepted so far beside them),
+    the round is tried again over the named mechanisms (not the generic extra modes and dead times: those are
+    path changes, what freeing the paths does) and each passing hypothesis, with the same tests (Holm over
+    that round). A passing hypothesis (an artefact excepted) is refused when it does not pass there, or when
+    a named mechanism that passes there predicts the held-out blocks significantly better than it (the
+    signed-rank test on the blocks' pooled improvement, Holm over those rivals): beside free paths it only
+    did what the paths' freedom and that mechanism do together. Requiring both searches keeps the search's
+    false-positive rate (a hypothesis is taken only when each test rejects at its level).
+    """
+    check = [t for t in passing if not t.hypothesis.artefact]
+    if not check:
+        return {}
+    keys = {h.key for h in named}
+    hyps = list(named) + [t.hypothesis for t in check if t.hypothesis.key not in keys]
+    tried: dict[str, Trial] = {}
+    for h in hyps:
+        ev = _evidence(stack, [ax for ax in held_axes if h.settings.get(ax.name)], h)
+        if ev:
+            tried[h.key] = Trial(hypothesis=h, round=0, evidence=ev,
+                                 p=min(1.0, len(ev) * min(e.p for e in ev.values())))
+    trials = list(tried.values())
+    for t, p in zip(trials, holm([t.p for t in trials]), strict=True):
+        t.p_holm = p
+        t.verdict = _judge(t, o)
+    refused: dict[int, str] = {}
+    for t in check:
+        mine = tried.get(t.hypothesis.key)
+        if mine is None or mine.verdict != "passes":
+            refused[id(t)] = ("with the paths held at the identified time constants it does not pass"
+                          + (f" ({mine.verdict})" if mine is not None else ""))
+            continue
+        rivals = [r for r in trials if r is not mine and r.verdict == "passes" and not r.hypothesis.generic]
+        if not rivals:
+            continue
+        ps = holm([one_sided_p(_pair(mine, r)) for r in rivals])
+        best = min(range(len(rivals)), key=lambda k: ps[k])
+        if ps[best] < o.alpha:
+            refused[id(t)] = (f"with the paths held at the identified time constants {rivals[best].hypothesis.key} "
+                          f"predicts the held-out blocks significantly better (Holm p = {ps[best]:.2g})")
+    return refused
 
 
 def _final_terms(stack: Stack, ax: _Axis, offsets: Sequence[np.ndarray], accepted: Sequence[Trial]) -> list[Term]:
