@@ -83,9 +83,9 @@ def test_a_term_that_passes_only_beside_free_paths_is_not_taken(monkeypatch):
     refit = d.results["refit"]
     eddy = next(t for t in refit.trials if t.round == 1 and t.hypothesis.key == "eddy_loss:speed")
     assert "eddy_loss:speed" not in [t.hypothesis.key for t in refit.accepted], eddy.verdict
-    # with the paths held at the identified time constants, the slow mode explains the data significantly better
+    # with the paths held at the identified time constants, the slow mode accounts for what the free paths did
     assert eddy.verdict.startswith("not taken"), eddy.verdict
-    assert "slow_mode:speed predicts the held-out blocks significantly better" in eddy.verdict, eddy.verdict
+    assert "slow_mode:speed does not" in eddy.verdict, eddy.verdict
     # the same search without the check takes it: the check is what refuses it
     arts = {a: [s.column(d.stack) for s in f.steps] for a, f in d.findings.items()}
     sub = replace(options, alpha=options.alpha / 2, alpha_axis=options.alpha_axis / 2)
