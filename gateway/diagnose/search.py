@@ -14,7 +14,9 @@ offset per recording). A hypothesis can be accepted when
 Of those, the one with the lowest held-out error is accepted, unless a nested simpler hypothesis (a
 dead time's plain extra mode) passes too and is not significantly worse. Artefacts are accepted by the
 same rules but become nuisance columns, not model terms. Rounds go on while held-out error keeps falling
-significantly.
+significantly. Judged beside free paths (re-identification), a hypothesis is also checked with the identified
+paths held (:func:`_held_check`): one that stands in for the paths' freedom, where a named mechanism accounts
+for the data with the paths held, is not taken.
 """
 
 from __future__ import annotations
