@@ -283,18 +283,19 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
             t.verdict = _judge(t, options)
         trials += round_trials
         passing = [t for t in round_trials if t.verdict == "passes"]
+        held_passing: set[str] = set()
         if held_axes and passing:
             if progress:
                 progress(f"round {rnd}: the paths held")
             named = [h for h in remaining if not h.artefact and not h.generic]
-            refused = _held_check(stack, passing, named, round_trials, held_axes, options)
+            refused, held_passing = _held_check(stack, passing, named, round_trials, held_axes, options)
             for t in passing:
                 if id(t) in refused:
                     t.verdict = f"not taken: passes with the paths free, but {refused[id(t)]}"
             passing = [t for t in passing if id(t) not in refused]
         if not passing:
             break
-        chosen = _occam(passing, round_trials, options)
+        chosen = _occam(passing, round_trials, options, preferred=held_passing)
         for t in passing:
             t.verdict = "accepted" if t is chosen else f"passes, but {chosen.hypothesis.key} explains more"
         accepted.append(chosen)
@@ -310,8 +311,8 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
 
 
 def _held_check(stack: Stack, passing: Sequence[Trial], named: Sequence[Hypothesis], round_trials: Sequence[Trial],
-                held_axes: Sequence[_Axis], o: Options) -> dict[int, str]:
-    """The passing trials refused with the paths held (by ``id``), and why.
+                held_axes: Sequence[_Axis], o: Options) -> tuple[dict[int, str], set[str]]:
+    """The passing trials refused with the paths held (by ``id``), and why; the keys that pass there too.
 
     Beside free paths (the bank of lags) a hypothesis is judged by what it adds to whatever the paths can
     become, and it can pass by standing in for freedom the bank lacks, the paths doing the rest of the missing
@@ -327,6 +328,9 @@ def _held_check(stack: Stack, passing: Sequence[Trial], named: Sequence[Hypothes
        (Holm over the rivals);
     3. with the paths held, R is not significantly worse than the free paths without it (it does account).
 
+    A generic hypothesis (an extra mode or a dead time on a path: a path change itself, what the bank's
+    freedom does too) is refused when it does not pass with the paths held.
+
     Each comparison is the signed-rank test on the blocks' squared error pooled over the axes, at ``alpha``.
     When the missing physics distorted the identified paths beyond what any term beside them repairs (the
     room drifting through the identification runs), no R meets 3 and nothing is refused. A hypothesis is taken
@@ -334,7 +338,7 @@ def _held_check(stack: Stack, passing: Sequence[Trial], named: Sequence[Hypothes
     """
     check = [t for t in passing if not t.hypothesis.artefact]
     if not check:
-        return {}
+        return {}, set()
     keys = {h.key for h in named}
     hyps = list(named) + [t.hypothesis for t in check if t.hypothesis.key not in keys]
     tried: dict[str, Trial] = {}
@@ -365,6 +369,12 @@ def _held_check(stack: Stack, passing: Sequence[Trial], named: Sequence[Hypothes
         mine = tried.get(t.hypothesis.key)
         if mine is None or not axes:
             continue
+        if t.hypothesis.generic and mine.verdict != "passes":
+            # an extra mode or dead time on a path is a path change itself: beside free paths it can be the
+            # bank's missing freedom; it is the path's structure only if the identified paths need it too
+            refused[id(t)] = (f"with the paths held at the identified time constants it does not pass "
+                              f"({mine.verdict}): a change of a path's structure the identified paths do not need")
+            continue
         with_t = held_sse(mine, set(t.axes))
         if not one_sided_p(with_t - free) < o.alpha:
             continue  # with the paths held it accounts for what the free paths did
@@ -381,7 +391,8 @@ def _held_check(stack: Stack, passing: Sequence[Trial], named: Sequence[Hypothes
                     f"{rivals[k].hypothesis.key} does not ({with_r[k].sum():.4g} um^2; better than it, Holm p = "
                     f"{ps[k]:.2g}): it stands in for the paths' freedom")
                 break
-    return refused
+    return refused, {t.hypothesis.key for t in check if t.hypothesis.key in tried
+                     and tried[t.hypothesis.key].verdict == "passes"}
 
 
 def _final_terms(stack: Stack, ax: _Axis, offsets: Sequence[np.ndarray], accepted: Sequence[Trial]) -> list[Term]:
@@ -491,7 +502,8 @@ def _judge(t: Trial, o: Options) -> str:
     return "passes"
 
 
-def _occam(passing: Sequence[Trial], tried: Sequence[Trial], o: Options) -> Trial:
+def _occam(passing: Sequence[Trial], tried: Sequence[Trial], o: Options, *, preferred: set[str] = frozenset()
+           ) -> Trial:
     """The simplest passing hypothesis, replaced by a richer one only when that one is significantly better.
 
     Walks from the fewest free parameters up (ties: the larger held-out gain first). Physics that says
@@ -499,6 +511,9 @@ def _occam(passing: Sequence[Trial], tried: Sequence[Trial], o: Options) -> Tria
     extra mode or dead time on a path fits nearly anything the spindle does, so it counts one parameter
     more and has to earn its parameters on the held-out blocks. A hypothesis that nests simpler ones (a
     dead time nests the plain extra mode) must also beat each of them significantly, passing or not.
+    ``preferred`` (the hypotheses that also pass with the identified paths held, :func:`_held_check`) come
+    first among those with as many parameters: where the free search cannot tell two apart significantly,
+    the one the data need with the paths held too is taken.
     """
     by_key = {t.hypothesis.key: t for t in tried}
 
@@ -506,7 +521,8 @@ def _occam(passing: Sequence[Trial], tried: Sequence[Trial], o: Options) -> Tria
         return all(one_sided_p(_pair(by_key[k], t)) < o.alpha for k in t.hypothesis.simpler if k in by_key)
 
     ordered = sorted((t for t in passing if earns(t)),
-                     key=lambda t: (t.hypothesis.complexity + t.hypothesis.generic, -t.score))
+                     key=lambda t: (t.hypothesis.complexity + t.hypothesis.generic,
+                                    t.hypothesis.key not in preferred, -t.score))
     if not ordered:
         return max(passing, key=lambda t: t.score)
     current = ordered[0]
