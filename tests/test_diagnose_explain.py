@@ -16,9 +16,11 @@ import pytest
 import test_diagnose_reidentify as plant
 
 from gateway.diagnose import diagnose
-from gateway.diagnose.explain import explain
+from gateway.diagnose.explain import explain, held_corrections
+from gateway.diagnose.hypotheses import Hypothesis, Setting
 from gateway.diagnose.refit import path_corrections
-from gateway.diagnose.search import Options, search
+from gateway.diagnose.search import AxisEvidence, Options, Trial, _occam, search
+from gateway.diagnose.select import GridFit
 from gateway.identify import identify
 from gateway.model import FirstOrder, PathTF
 from gateway.replay import estimate
@@ -92,3 +94,48 @@ def test_a_term_that_passes_only_beside_free_paths_is_not_taken(monkeypatch):
     free = search(d.stack, d.hypotheses, block=d.block, artefacts=arts, options=sub,
                   corrections=path_corrections(d.stack, d.model))
     assert [t.hypothesis.key for t in free.accepted][:1] == ["eddy_loss:speed"]
+
+
+def test_an_extra_mode_the_identified_paths_do_not_need_is_not_taken(monkeypatch):
+    # no effect, the model's paths the plant's own: at a 0.5 % bar, extra modes on the current's path pass
+    # beside the free paths (the bank's freedom); with the paths held they do not pass, and are not taken
+    d, _ = _diagnosed(monkeypatch, slow=False)
+    arts = {a: [s.column(d.stack) for s in f.steps] for a, f in d.findings.items()}
+    options = Options(min_gain=0.005)
+    bank = path_corrections(d.stack, d.model)
+    generic = [h for h in d.hypotheses if h.key in ("higher_order:i_sq", "dead_time:i_sq")]
+    assert len(generic) == 2
+    for h in generic:
+        free = search(d.stack, [h], block=d.block, artefacts=arts, options=options, corrections=bank)
+        assert [t.hypothesis.key for t in free.accepted] == [h.key]
+        checked = search(d.stack, [h], block=d.block, artefacts=arts, options=options, corrections=bank,
+                         held=held_corrections(d.stack, d.model))
+        assert checked.accepted == []
+        assert checked.trials[0].verdict.startswith("not taken"), checked.trials[0].verdict
+        assert "the identified paths do not need" in checked.trials[0].verdict
+
+
+def _trial(key: str, held: list[float], without: list[float]) -> Trial:
+    """A passing trial on one axis with the given held-out SSE per block (two gains, no grid)."""
+    setting = Setting(params=(), components=())
+    hyp = Hypothesis(key=key, family=key, title=key, explanation="", settings={"z": [setting, setting]})
+    fit = GridFit(held=np.array(held), theta_fold=np.zeros(len(held), int), gains_fold=np.zeros((len(held), 0)),
+                  best=0, gains=np.zeros(0), sse=0.0, without=np.array(without))
+    ev = AxisEvidence(axis="z", sse_before=sum(without), sse_after=sum(held), p=0.001, setting=setting,
+                      gains=np.zeros(0), gains_sd=np.zeros(0), params_sd={}, effect_rms_um=1.0, relevance_um=0.1,
+                      fit=fit, included=True)
+    return Trial(hypothesis=hyp, round=1, evidence={"z": ev}, p=0.001, p_holm=0.001, verdict="passes")
+
+
+def test_of_two_the_free_search_cannot_tell_apart_the_one_that_passes_with_the_paths_held_is_taken():
+    without = [10.0 + 0.1 * k for k in range(12)]
+    held = [0.3 * w for w in without]
+    a = _trial("preload", held, without)
+    # half the blocks better, half worse, a little worse in all: no consistent difference
+    b = _trial("eddy", [h + (0.25 if k % 2 else -0.2) for k, h in enumerate(held)], without)
+    assert a.score > b.score  # the higher score, but not significantly better
+    assert _occam([a, b], [a, b], Options()) is a
+    assert _occam([a, b], [a, b], Options(), preferred={"eddy"}) is b
+    # significantly better over the blocks: the free search decides
+    c = _trial("preload", [w * 0.10 for w in without], without)
+    assert _occam([c, b], [c, b], Options(), preferred={"eddy"}) is c
