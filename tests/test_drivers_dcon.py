@@ -85,7 +85,8 @@ def test_a_silent_module_times_out_naming_the_device_and_the_module(line, tmp_pa
 
 def test_a_dead_module_goes_off_scan_alone_and_the_other_is_read_on(line, tmp_path):
     source, clock, devices, _ = line
-    profile = live_profile(devices, tmp_path, via="dcon", device_keys={"timeout_s": 0.2, "backoff_s": 2.0})
+    # the live module's answer must come within timeout_s on a loaded PC too (0.2 s failed once at load 10)
+    profile = live_profile(devices, tmp_path, via="dcon", device_keys={"timeout_s": 0.6, "backoff_s": 2.0})
     devices.dcon.silent_modules.add(0x02)  # the currents' module dies
     driver = make_driver(profile, "dcon", clock)
     with driver:
