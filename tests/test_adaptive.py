@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import math
 import sys
@@ -309,9 +310,10 @@ def test_live_contributions_equal_batch_and_sum_to_the_estimate():
         np.testing.assert_allclose(c.sum(axis=1), y, atol=1e-9)
 
 
-@pytest.fixture(scope="module")
-def bench():
-    spec = importlib.util.spec_from_file_location("bench_adaptive", ROOT / "bench" / "adaptive.py")
+@contextlib.contextmanager
+def bench_module(name: str):
+    """``bench/<name>.py`` imported as a module (registered while in use: its dataclasses need it)."""
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "bench" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module
     try:
@@ -319,6 +321,12 @@ def bench():
         yield module
     finally:
         del sys.modules[spec.name]
+
+
+@pytest.fixture(scope="module")
+def bench():
+    with bench_module("adaptive") as module:
+        yield module
 
 
 def test_on_the_simulated_machine_with_the_room_cycle(bench):
@@ -341,11 +349,7 @@ def test_on_the_simulated_machine_with_the_room_cycle(bench):
 
 def test_ceiling_bench_draws_the_filters_own_disturbance():
     """bench/adaptive_ceiling.py's truth is the filter's state space: at rest its variance after T is scale x Q(T)."""
-    spec = importlib.util.spec_from_file_location("bench_adaptive_ceiling", ROOT / "bench" / "adaptive_ceiling.py")
-    ceiling = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = ceiling
-    try:
-        spec.loader.exec_module(ceiling)
+    with bench_module("adaptive_ceiling") as ceiling:
         from gateway.adaptive.filter import _drift_model
 
         s = DriftSettings()
@@ -359,5 +363,3 @@ def test_ceiling_bench_draws_the_filters_own_disturbance():
         want = scales * _drift_model(s, (n_w - 1) * DT)[1][0, 0]
         np.testing.assert_allclose(ends.var(axis=0), want, rtol=0.3)  # 300 draws: +-8 % sd
         assert ceiling.interval_sd_um(s, 1.0, 2.0) == pytest.approx(math.sqrt(_drift_model(s, 7200.0)[1][0, 0]))
-    finally:
-        del sys.modules[spec.name]
