@@ -89,7 +89,8 @@ def _no_leaked_threads():
 def _no_leaked_signal_state():
     """A test that leaves this worker's SIGINT/SIGTERM handler or signal mask changed fails (and both are put
     back): every later child process would inherit an ignored or blocked Ctrl-C (a double Ctrl-C test of
-    ``cncgw run`` timed out in full-suite runs, never alone, with the child's SIGINTs without effect)."""
+    ``cncgw run`` timed out so when the whole suite ran as a background job, which ignores SIGINT from the
+    start: see ``test_live_restart.dry_run``)."""
     import signal
 
     if threading.current_thread() is not threading.main_thread():

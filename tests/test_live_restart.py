@@ -131,10 +131,11 @@ def dry_run(tmp_path, data, *, speedup):
         profile = live_profile(devices, tmp_path / "dry.toml", enabled=False, opcua_port=None)
         cmd = [sys.executable, "-m", "gateway.cli", "run", "--profile", str(profile), "--data", str(data),
                "--speedup", f"{speedup:g}", "--no-opcua", "--log-format", "json"]
-        # in full-suite runs the double Ctrl-C test timed out with the gateway still sampling (its main thread
-        # waiting, the SIGINTs without effect; not reproduced alone): one hypothesis is a SIGINT this worker
-        # ignores, which a child inherits; the child gets what a terminal gives it (cncgw run itself unblocks
-        # an inherited signal mask)
+        # a suite started as a background job of a non-interactive shell (`(python3 dev.py test &)`, a CI
+        # script's `cmd &`) runs with SIGINT ignored, as POSIX has such a shell do, and a child inherits it:
+        # the double Ctrl-C test then timed out with the gateway still sampling (found: `(bash -c '...' &)`
+        # gives Python SIGINT = SIG_IGN). The child gets what a terminal gives it (cncgw run itself warns of an
+        # ignored SIGINT and unblocks an inherited signal mask)
         inherited = signal.getsignal(signal.SIGINT)
         if inherited is signal.SIG_IGN:
             signal.signal(signal.SIGINT, signal.default_int_handler)
