@@ -27,6 +27,17 @@ def pyplot() -> Any:
     return plt
 
 
+def require(option: str) -> None:
+    """Refuse ``option`` (e.g. ``--plot``) before any work when matplotlib is not installed.
+
+    Checked first: an identification or a diagnosis takes seconds to minutes, and failing on the figure at its
+    end hid what had been done (a model written, its report unprinted).
+    """
+    if not available():
+        raise GatewayError(f"{option}: plots need matplotlib, which this install leaves out: {INSTALL_HINT} "
+                           "(or leave out the option)")
+
+
 def available() -> bool:
     """Whether matplotlib can be imported (without importing it)."""
     from importlib.util import find_spec

@@ -5,11 +5,13 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import sys
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from gateway import plotting
 from gateway.commands._common import (
     add_recording_options,
     load_model_for,
@@ -124,9 +126,13 @@ def run(args: argparse.Namespace) -> int:
     extra = {"model": str(model_path), "profile": str(profile.path)}
     written = {}
     if out is not None:
+        # without matplotlib (an install without [engineering]) the report and the model are written all the
+        # same: losing a diagnosis's minutes of work over its figures helps no one
         written = write_report(d, out, model_name=model_path.name.removesuffix(".toml").removesuffix(".model"),
                                title=f"{profile.name}, model {model_path.name}", extra=extra,
-                               validations=validations, hedges=hedges)
+                               validations=validations, hedges=hedges, figures=plotting.available())
+        if not plotting.available():
+            print(f"figures: skipped (matplotlib is not installed: {plotting.INSTALL_HINT})", file=sys.stderr)
     if args.json:
         print(json.dumps(to_json(d, model_file=str(written.get("model", "")), validations=validations) | extra,
                          indent=2))

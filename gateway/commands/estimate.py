@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from gateway import plotting
 from gateway.commands._common import add_recording_options, load_model_for, read_recordings
 from gateway.errors import GatewayError, UsageError
 from gateway.prepare import INITIAL_CHOICES
@@ -53,6 +54,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Estimate every recording; print metrics; write CSV and plot on request."""
+    if args.plot:
+        plotting.require("--plot")
     profile = load_profile(args.profile)
     model, model_path = load_model_for(profile, args.model)
     if model.machine and model.machine != profile.name:

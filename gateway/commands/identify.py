@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from gateway import BUNDLED
+from gateway import BUNDLED, plotting
 from gateway.commands._common import add_recording_options, fail_if_exists, positive_int, progress_bar, read_recordings
 from gateway.errors import UsageError
 from gateway.identify import identify
@@ -72,6 +72,8 @@ def _output(args: argparse.Namespace, profile: Profile) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     """Identify, write the model, print the report."""
+    if args.plot:
+        plotting.require("--plot")
     profile = load_profile(args.profile)
     out = _output(args, profile)
     # checked before the work: identification takes minutes, and the model a gateway runs is not replaced
@@ -104,13 +106,13 @@ def run(args: argparse.Namespace) -> int:
         print(line)
     print()
     print("\n".join(identification_summary(result.model)))
+    print(f"wrote {out}")
     if args.plot:
         from gateway.replay import estimate, plot_estimates
 
         ests = [estimate(result.model, r, align="offset", gap_policy=args.gap_policy) for r in [*recs, *prod]]
         plot_estimates(ests, args.plot, title=f"{profile.name}: identification fit ({args.method})")
         print(f"wrote {args.plot}")
-    print(f"wrote {out}")
     if not args.output and _inside(profile.model_path, BUNDLED):
         print(f"note: {profile.name} is a profile bundled with cncgw: its model was written here, not into the "
               f"installed package; pass it on with --model {out}")

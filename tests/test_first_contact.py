@@ -1,0 +1,53 @@
+"""What a plant engineer trips on at first contact: the README's commands on an install without extras,
+from outside the repository, and the files a user really makes (spreadsheets, wrong settings)."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import pytest
+
+from gateway.cli import main
+
+
+@pytest.fixture(scope="module")
+def random_spindle(tmp_path_factory):
+    """The paper's random spindle run (6 h) recorded by the simulated machine."""
+    out = tmp_path_factory.mktemp("rec")
+    assert main(["simulate", "record", "random-spindle", "-o", str(out), "--no-progress"]) == 0
+    return out / "random-spindle.csv"
+
+
+@pytest.fixture
+def no_matplotlib(monkeypatch):
+    """An install without the [engineering] extra: matplotlib cannot be imported (find_spec says so too)."""
+    for name in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+
+
+# ------------------------------------------------------------------------------ installs without matplotlib ---
+@pytest.mark.parametrize("command", ["identify", "estimate"])
+def test_plot_without_matplotlib_is_refused_before_any_work(command, no_matplotlib, tmp_path, capsys):
+    # recordings that do not exist: the refusal comes first, not after minutes of identification
+    out = tmp_path / "m.model.toml"
+    args = [command, "--profile", "sim-vmc", str(tmp_path / "none.csv"), "--plot", str(tmp_path / "f.png")]
+    assert main(args + (["-o", str(out)] if command == "identify" else [])) == 1
+    err = capsys.readouterr().err
+    assert "--plot: plots need matplotlib" in err
+    assert "pip install 'cncgw[engineering]'" in err
+    assert "none.csv" not in err
+    assert not out.exists()
+
+
+def test_diagnose_without_matplotlib_writes_its_report_and_model(random_spindle, no_matplotlib, tmp_path, capsys):
+    out = tmp_path / "diag"
+    assert main(["diagnose", "--profile", "sim-vmc", str(random_spindle), "-o", str(out), "--no-reidentify"]) == 0
+    captured = capsys.readouterr()
+    assert "figures: skipped (matplotlib is not installed" in captured.err
+    assert f"wrote {out / 'report.md'}" in captured.out
+    assert (out / "sim-vmc.diagnosed.model.toml").exists()
+    doc = json.loads((out / "report.json").read_text())
+    assert doc["figures"] == []
+    assert not list(out.glob("*.png"))
