@@ -228,8 +228,8 @@ def test_real_lathe_recording_of_concatenated_days_runs(tmp_path, shared_data, c
     assert any("the longest recording is 10 h" in c for c in doc["conclusions"])
     assert "recorded_signal:day" not in {t["hypothesis"] for t in doc["trials"]}  # a counter is not a signal
     assert main(["diagnose", "--profile", str(profile_path), "--model", str(model), "--period-s", "60",
-                 "--split-by", "shift", str(csv)]) == 1
-    assert 'no numeric column "shift"' in capsys.readouterr().err
+                 "--split-by", "shift", str(csv)]) == 2
+    assert 'no recording has a numeric column "shift"' in capsys.readouterr().err
 
 
 # -------------------------------------------------------------------------------------------- statistics ---

@@ -51,3 +51,38 @@ def test_diagnose_without_matplotlib_writes_its_report_and_model(random_spindle,
     doc = json.loads((out / "report.json").read_text())
     assert doc["figures"] == []
     assert not list(out.glob("*.png"))
+
+
+# ------------------------------------------------------------------------------------- diagnose --split-by ---
+def _two_days(rec, path):
+    """``rec`` twice, one after the other, with a day column: a logger's file of several days."""
+    lines = [ln for ln in rec.read_text().splitlines() if not ln.startswith("#")]
+    rows = [ln.split(",") for ln in lines[1:]]
+    last = float(rows[-1][0])
+    out = [lines[0] + ",day"]
+    out += [",".join(r) + ",1" for r in rows]
+    out += [",".join([f"{float(r[0]) + last:g}", *r[1:]]) + ",2" for r in rows]
+    path.write_text("\n".join(out) + "\n")
+    return path
+
+
+def test_split_by_splits_the_files_that_have_the_column_and_keeps_the_others_whole(random_spindle, tmp_path,
+                                                                                   capsys):
+    days = _two_days(random_spindle, tmp_path / "days.csv")
+    # the README's workflow: the experiments (here one recording without a day column), a file of several
+    # days, and a validation run without one: it had failed on the first file without the column (exit 1)
+    assert main(["diagnose", "--profile", "sim-vmc", str(random_spindle), str(days), "--split-by", "day",
+                 "--validate", str(random_spindle), "--no-reidentify", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["recordings"] == [str(random_spindle), f"{days}[day=1]", f"{days}[day=2]"]
+    assert len(doc["validation"]) == 1
+
+
+def test_split_by_a_column_no_recording_has_is_a_usage_error_naming_the_files(random_spindle, tmp_path, capsys):
+    days = _two_days(random_spindle, tmp_path / "days.csv")
+    assert main(["diagnose", "--profile", "sim-vmc", str(random_spindle), str(days), "--split-by", "shift"]) == 2
+    err = capsys.readouterr().err
+    assert 'no recording has a numeric column "shift"' in err
+    assert f"{days}: day" in err
+    assert f"{random_spindle}: none" in err
+

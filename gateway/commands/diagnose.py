@@ -6,6 +6,7 @@ import argparse
 import itertools
 import json
 import sys
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
@@ -30,11 +31,23 @@ def split_by(rec: Recording, column: str) -> list[Recording]:
     values = rec.extras.get(column)
     if values is None:
         have = ", ".join(sorted(rec.extras)) or "none"
-        raise GatewayError(f'{rec.source}: --split-by: no numeric column "{column}" (numeric extra columns: {have})')
+        raise UsageError(f'{rec.source}: --split-by: no numeric column "{column}" (numeric extra columns: {have})')
     held = hold_missing(np.asarray(values, float))
     cuts = [0, *(np.flatnonzero(np.diff(held) != 0) + 1).tolist(), len(rec)]
     return [replace(rec.slice(a, b), source=f"{rec.source}[{column}={held[a]:g}]")
             for a, b in itertools.pairwise(cuts) if b > a]
+
+
+def split_those_with(recs: list[Recording], column: str, others: Sequence[Recording] = ()) -> list[Recording]:
+    """``recs`` with every recording that has ``column`` split into its runs; one without it stays whole.
+
+    The experiments and a validation day given beside a file of several days have no day column: only the
+    files that hold several runs are split. ``column`` in none of ``recs`` and ``others`` is a usage error.
+    """
+    if not any(column in r.extras for r in [*recs, *others]):
+        have = "; ".join(f"{r.source}: {', '.join(sorted(r.extras)) or 'none'}" for r in [*recs, *others])
+        raise UsageError(f'--split-by: no recording has a numeric column "{column}" (numeric extra columns: {have})')
+    return [part for r in recs for part in (split_by(r, column) if column in r.extras else [r])]
 
 
 def _share(text: str) -> float:
@@ -74,7 +87,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--blocks", type=positive_int, default=16, metavar="K", help="held-out blocks of time (default 16)")
     p.add_argument("--split-by", metavar="COLUMN",
                    help="a recording holds several runs one after the other (e.g. a day number column): start a "
-                        "new recording wherever COLUMN changes value; each starts in its own equilibrium")
+                        "new recording wherever COLUMN changes value; each starts in its own equilibrium "
+                        "(recordings without COLUMN, e.g. the experiments, stay whole)")
     p.add_argument("--history", metavar="RECORDING",
                    help="a recording that ran just before the first --validate recording: it starts in the state "
                         "this one left (recordings given that end one window before another starts are chained "
@@ -100,8 +114,6 @@ def run(args: argparse.Namespace) -> int:
     profile = load_profile(args.profile)
     model, model_path = load_model_for(profile, args.model)
     recs = read_recordings(args.recordings, profile, period_s=args.period_s, require_displacement=False)
-    if args.split_by:
-        recs = [part for r in recs for part in split_by(r, args.split_by)]
     if args.blocks < 3:
         raise UsageError(f"--blocks: expected at least 3 held-out blocks, got {args.blocks}")
     options = Options(alpha=args.alpha, min_effect_share=args.min_effect, min_gain=args.min_gain, blocks=args.blocks,
@@ -112,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
     vrecs = read_recordings(args.validate, profile, period_s=args.period_s, require_displacement=True) \
         if args.validate else []
     if args.split_by:
-        vrecs = [part for r in vrecs for part in split_by(r, args.split_by)]
+        recs, vrecs = split_those_with(recs, args.split_by, vrecs), split_those_with(vrecs, args.split_by, recs)
     history = None
     if args.history:
         history = read_recordings([args.history], profile, period_s=args.period_s, require_displacement=False)[0]
