@@ -18,6 +18,7 @@ Format (one row per window, normally one minute)::
   missing required column is an error naming the file, the row (file line) and the column.
 - Gaps stay explicit: rows are placed on a regular grid of the nominal period, and a missing window is a
   row of NaN with ``present[k] == False``, never an interpolated value.
+- Rows mostly more than one period apart are an error (the period is not the file's), not gaps.
 - Bounds (each an error naming file, line and column): numbers are plain decimals with an optional
   exponent (``-1.5``, ``2e-3``; not ``1_000``, ``0x10``, ``infinity`` or non-ASCII digits) of magnitude at
   most ``MAX_ABS_VALUE``; times within +-``MAX_ABS_TIME_S``; one gap at most ``MAX_GAP_S`` and all gaps
@@ -400,6 +401,15 @@ def _read_recording(path: Path, *, factor_columns: Mapping[str, str], displaceme
         raise RecordingError(
             f'{path}: column "{time_column}": the gaps add up to {missing:.0f} missing windows of {period_s:g} s: '
             f"expected at most {MAX_MISSING_WINDOWS} (split the recording, or give the row period it really has)")
+    if len(steps) >= 10 and np.median(ratio) >= 1.5:
+        # most rows followed by a gap is no recording with gaps: the period is not the file's (a profile's
+        # period_s of 1 s read a file of minutes as 59 missing windows after every row, filled by the gap
+        # policy, and gave other figures without a word)
+        raise RecordingError(
+            f'{path}:{rows[1][0]}: column "{time_column}": rows are {np.median(steps):g} s apart (the median of '
+            f"{len(steps)} steps), {np.median(ratio):g} times the row period of {period_s:g} s: expected rows one "
+            f"period apart with occasional gaps; set the period to the file's own ({np.median(steps):g} s: "
+            "[recording] period_s in the profile, or --period-s)")
     slots = np.concatenate([[0], np.cumsum(np.maximum(1, np.rint(ratio).astype(int)))]) if n else np.zeros(0, int)
     total = int(slots[-1]) + 1 if n else 0
     present = np.zeros(total, dtype=bool)

@@ -86,3 +86,29 @@ def test_split_by_a_column_no_recording_has_is_a_usage_error_naming_the_files(ra
     assert f"{days}: day" in err
     assert f"{random_spindle}: none" in err
 
+
+# ---------------------------------------------------------------------------------- wrong units, bad files ---
+def _profile(tmp_path, old, new):
+    """The bundled profile with one line changed, its model the bundled one."""
+    from gateway import BUNDLED
+
+    text = (BUNDLED / "sim-vmc.toml").read_text()
+    assert old in text
+    text = text.replace(old, new).replace('file = "sim-vmc.model.toml"',
+                                          f'file = "{(BUNDLED / "sim-vmc.model.toml").as_posix()}"')
+    path = tmp_path / "p.toml"
+    path.write_text(text)
+    return path
+
+
+def test_a_row_period_that_is_not_the_files_is_an_error_not_gaps(random_spindle, tmp_path, capsys):
+    # period_s = 1 typed for a file of minutes: read as 59 missing windows after every row, filled by the
+    # gap policy, it gave other figures (z max error 3.5 -> 12.5 % of peak on spindle-feeds) without a word
+    profile = _profile(tmp_path, "period_s = 60.0", "period_s = 1.0")
+    assert main(["estimate", "--profile", str(profile), str(random_spindle)]) == 4
+    err = capsys.readouterr().err
+    assert f"{random_spindle}:" in err
+    assert "rows are 60 s apart (the median of 359 steps), 60 times the row period of 1 s" in err
+    assert "[recording] period_s in the profile, or --period-s" in err
+    # the file's own period reads it
+    assert main(["estimate", "--profile", str(profile), "--period-s", "60", str(random_spindle)]) == 0
