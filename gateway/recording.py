@@ -13,7 +13,8 @@ Format (one row per window, normally one minute)::
   the window ``(t - period, t]``; displacement columns are samples taken at ``t``.
 - Factor columns and displacement columns (um) are named by the profile; every other column is kept
   (numeric ones as numbers, others as text) for later analysis, e.g. an ambient temperature.
-- Real files are messy: a UTF-8 BOM, blanks around cells and comment lines are accepted; an empty cell
+- Real files are messy: a UTF-8 BOM, blanks around cells, comment lines and a spreadsheet's ``;`` or tab
+  with decimal commas (``_dialect``) are accepted; an empty cell
   or ``nan`` is a missing value. Time that does not increase, a non-numeric cell in a numeric column or a
   missing required column is an error naming the file, the row (file line) and the column.
 - Gaps stay explicit: rows are placed on a regular grid of the nominal period, and a missing window is a
@@ -269,7 +270,11 @@ def _read_recording(path: Path, *, factor_columns: Mapping[str, str], displaceme
             text = path.read_text(encoding="utf-8-sig")
         except FileNotFoundError:
             raise RecordingError(f"{path}: file not found") from None
-        except (OSError, UnicodeDecodeError) as exc:
+        except UnicodeDecodeError as exc:  # a spreadsheet's "CSV" in its ANSI code page (a degree sign, a mu)
+            line = exc.object[:exc.start].count(b"\n") + 1
+            raise RecordingError(f"{path}:{line}: byte 0x{exc.object[exc.start]:02x} is not UTF-8: expected a UTF-8 "
+                                 'text (in Excel save as "CSV UTF-8")') from None
+        except OSError as exc:
             raise RecordingError(f"{path}: cannot read: {exc}") from None
     else:
         text = text.removeprefix("\ufeff")
@@ -434,8 +439,42 @@ def _read_recording(path: Path, *, factor_columns: Mapping[str, str], displaceme
     )
 
 
+#: a number written with a decimal comma ("-12,5", "1,2E-03"): what a spreadsheet saves in such a locale
+_COMMA_NUMBER = re.compile(r"[+-]?(?:[0-9]+,[0-9]*|,[0-9]+)(?:[eE][+-]?[0-9]+)?")
+
+
+def _dialect(text: str) -> tuple[str, bool]:
+    """The cell separator and whether numbers carry a decimal comma.
+
+    A spreadsheet in a locale whose decimal mark is a comma (Excel in German, French, ...) saves "CSV" with
+    ``;`` between cells and ``12,5``; "Text (tab delimited)" separates by tabs. Decided by the header line
+    (the first that is neither blank nor a ``#`` comment): a comma in it keeps commas; else a ``;`` or a tab
+    separates, and numbers have a decimal comma if any cell of the file is one.
+    """
+    for line in io.StringIO(text):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        if "," in s:
+            return ",", False
+        sep = next((d for d in (";", "\t") if d in s), None)
+        if sep is None:
+            return ",", False
+        pattern = rf"(?:^|{re.escape(sep)})[ ]*{_COMMA_NUMBER.pattern}[ ]*(?={re.escape(sep)}|\r?$)"
+        return sep, re.search(pattern, text, re.MULTILINE) is not None
+    return ",", False
+
+
 def _csv_rows(text: str, path: Path) -> Iterable[tuple[int, list[str]]]:
-    reader = csv.reader(io.StringIO(text))
+    """The rows of ``text`` as cells, with their line numbers.
+
+    A spreadsheet's ``;`` or tab and decimal comma are read as such (see :func:`_dialect`): a number then
+    yields with a decimal point, and one written with a point, which such a file may mean as a thousands
+    separator (``1.000``), is an error naming its cell.
+    """
+    sep, decimal_comma = _dialect(text)
+    reader = csv.reader(io.StringIO(text), delimiter=sep)
+    header: list[str] | None = None
     while True:
         try:
             cells = next(reader)
@@ -447,7 +486,26 @@ def _csv_rows(text: str, path: Path) -> Iterable[tuple[int, list[str]]]:
                 raise RecordingError(f"{path}:{line}: a cell or comment longer than {csv.field_size_limit()} "
                                      "characters: expected the cells of one window") from None
             raise RecordingError(f"{path}:{line}: not readable as CSV: {exc}") from None
+        if decimal_comma and cells and not cells[0].strip().startswith("#") and any(c.strip() for c in cells):
+            if header is None:
+                header = [c.strip() for c in cells]
+            else:
+                cells = [_decimal_point(c, path, reader.line_num, header, i) for i, c in enumerate(cells)]
         yield reader.line_num, cells
+
+
+def _decimal_point(cell: str, path: Path, line: int, header: Sequence[str], i: int) -> str:
+    """A cell of a file with a decimal comma, its number written with a point (other cells as they are)."""
+    s = cell.strip()
+    if _COMMA_NUMBER.fullmatch(s):
+        return s.replace(",", ".")
+    if "." in s and _NUMBER.fullmatch(s):
+        name = header[i] if i < len(header) else f"{i + 1}"
+        raise RecordingError(f'{path}:{line}: column "{_clip(name)}": "{_clip(s)}" has a "." where this file\'s '
+                             "decimal mark is \",\" (its cells are separated by a semicolon or tab and it writes "
+                             "numbers such as 12,5): a thousands separator? expected a number such as 1000 or "
+                             "12,5") from None
+    return cell
 
 
 def _clip(cell: str, width: int = 40) -> str:

@@ -112,3 +112,63 @@ def test_a_row_period_that_is_not_the_files_is_an_error_not_gaps(random_spindle,
     assert "[recording] period_s in the profile, or --period-s" in err
     # the file's own period reads it
     assert main(["estimate", "--profile", str(profile), "--period-s", "60", str(random_spindle)]) == 0
+
+
+def _excel(text: str, sep: str = ";") -> bytes:
+    """``text`` as Excel saves "CSV" where the decimal mark is a comma: a BOM, CRLF, ';' and '12,5'."""
+    lines = [ln if ln.startswith("#") else ln.replace(",", sep).replace(".", ",") for ln in text.splitlines()]
+    return ("\ufeff" + "\r\n".join(lines) + "\r\n").encode("utf-8")
+
+
+@pytest.mark.parametrize("sep", [";", "\t"])
+def test_a_recording_saved_by_a_spreadsheet_reads_as_the_original(random_spindle, tmp_path, sep):
+    from gateway.profile import load_profile
+    from gateway.recording import read_for_profile
+
+    profile = load_profile("sim-vmc")
+    excel = tmp_path / "excel.csv"
+    excel.write_bytes(_excel(random_spindle.read_text(), sep))
+    a, b = read_for_profile(random_spindle, profile), read_for_profile(excel, profile)
+    assert b.meta == a.meta
+    assert list(b.factors) == list(a.factors)
+    for name in a.factors:
+        assert b.factors[name].tolist() == a.factors[name].tolist()
+    for axis in a.displacement:
+        assert b.displacement[axis].tolist() == a.displacement[axis].tolist()
+    assert b.time_s.tolist() == a.time_s.tolist()
+
+
+def test_a_point_in_a_file_with_decimal_commas_is_an_error_naming_the_cell(random_spindle, tmp_path, capsys):
+    # "1.000" in such a file may be a thousands separator: never read as 1
+    text = _excel(random_spindle.read_text()).decode("utf-8").splitlines()
+    row = next(i for i, ln in enumerate(text) if ln.startswith("600,0;"))
+    cells = text[row].split(";")
+    cells[1] = "1.000"
+    text[row] = ";".join(cells)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("\n".join(text) + "\n")
+    assert main(["estimate", "--profile", "sim-vmc", str(bad)]) == 4
+    err = capsys.readouterr().err
+    assert f'{bad}:{row + 1}: column "spindle_speed": "1.000" has a "." where this file\'s decimal mark is ","' in err
+
+
+def test_a_probe_file_saved_by_a_spreadsheet_reads_as_the_original(tmp_path):
+    from gateway.adaptive.probes import read_probes
+
+    plain = tmp_path / "probes.csv"
+    plain.write_text("time,seq,x_um,y_um,z_um,sd_um\n7200,1,0.5,-0.6,2.0,0.3\n14400,2,,-0.3,3.25,0.3\n")
+    excel = tmp_path / "probes-excel.csv"
+    excel.write_bytes(_excel(plain.read_text()))
+    got = read_probes(excel)
+    want = read_probes(plain)
+    assert [(p.seq, p.time_s, p.values_um, p.sd_um) for p in got] == \
+        [(p.seq, p.time_s, p.values_um, p.sd_um) for p in want]
+    assert got[1].values_um == {"y": -0.3, "z": 3.25}
+
+
+def test_a_recording_in_a_spreadsheets_code_page_names_the_line(tmp_path, capsys):
+    path = tmp_path / "ansi.csv"
+    path.write_bytes("time_s,spindle_speed\n# room in \u00b0C\n".encode("cp1252"))
+    assert main(["estimate", "--profile", "sim-vmc", str(path)]) == 4
+    assert f'{path}:2: byte 0xb0 is not UTF-8: expected a UTF-8 text (in Excel save as "CSV UTF-8")' in \
+        capsys.readouterr().err
