@@ -337,6 +337,12 @@ def _read_recording(path: Path, *, factor_columns: Mapping[str, str], displaceme
     non_numeric: set[str] = set()
     for r, (lineno, cells) in enumerate(rows):
         if len(cells) != width:
+            if r == n - 1 and len(cells) < width and not text.endswith(("\n", "\r")):
+                # a logger or a copy stopped mid-row: say so, the rows before it are whole
+                raise RecordingError(f"{path}:{lineno}: the file ends in the middle of this row ({len(cells)} of "
+                                     f"{width} cells, no line end): cut short while it was written or copied? "
+                                     f"expected whole rows: the {n - 1} rows before it are whole; delete this line "
+                                     "or copy the file again")
             raise RecordingError(f"{path}:{lineno}: row has {len(cells)} cells, expected {width} "
                                  f"(one per column of the header on line {header_line})")
         if t_idx is not None:

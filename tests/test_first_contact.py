@@ -172,3 +172,14 @@ def test_a_recording_in_a_spreadsheets_code_page_names_the_line(tmp_path, capsys
     assert main(["estimate", "--profile", "sim-vmc", str(path)]) == 4
     assert f'{path}:2: byte 0xb0 is not UTF-8: expected a UTF-8 text (in Excel save as "CSV UTF-8")' in \
         capsys.readouterr().err
+
+
+def test_a_recording_cut_short_mid_row_says_so(random_spindle, tmp_path, capsys):
+    text = random_spindle.read_text()
+    lines = text.splitlines(keepends=True)
+    k = len(lines) // 2
+    cut = tmp_path / "cut.csv"
+    cut.write_text("".join(lines[:k]) + ",".join(lines[k].split(",")[:3]))  # a copy stopped mid-row
+    assert main(["estimate", "--profile", "sim-vmc", str(cut)]) == 4
+    err = capsys.readouterr().err
+    assert f"{cut}:{k + 1}: the file ends in the middle of this row (3 of 13 cells, no line end)" in err
