@@ -183,3 +183,28 @@ def test_a_recording_cut_short_mid_row_says_so(random_spindle, tmp_path, capsys)
     assert main(["estimate", "--profile", "sim-vmc", str(cut)]) == 4
     err = capsys.readouterr().err
     assert f"{cut}:{k + 1}: the file ends in the middle of this row (3 of 13 cells, no line end)" in err
+
+
+# --------------------------------------------------------------------------- the README's paths, installed ---
+def test_the_readmes_profile_path_outside_a_checkout_names_the_bundled_profile(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)  # no profiles/ folder here, as after `pip install cncgw`
+    assert main(["profile", "check", "profiles/sim-vmc.toml"]) == 3
+    assert capsys.readouterr().err.strip() == ("cncgw: error: profiles/sim-vmc.toml: file not found; sim-vmc is a "
+                                               "profile bundled with cncgw: from any directory, --profile sim-vmc")
+
+
+def test_a_missing_model_of_a_bundled_profile_says_to_identify_with_its_name(tmp_path, capsys):
+    model = tmp_path / "m.model.toml"
+    assert main(["estimate", "--profile", "sim-vmc", "--model", str(model), str(tmp_path / "r.csv")]) == 5
+    err = capsys.readouterr().err
+    assert f"create it with `cncgw identify --profile sim-vmc EXPERIMENTS... -o {model}`" in err
+
+
+def test_a_model_file_given_as_the_profile_is_one_line(capsys):
+    from gateway import BUNDLED
+
+    model = BUNDLED / "sim-vmc.model.toml"
+    assert main(["profile", "check", str(model)]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"cncgw: error: {model}: a model file (it has [[path]] tables), not a profile: expected a "
+                   "machine profile with [machine] and [factors.*]; pass the model with --model"]

@@ -55,12 +55,26 @@ def read_recordings(paths: Sequence[str], profile: Profile, *, period_s: float |
             for p in paths]
 
 
+def profile_arg(profile: Profile) -> str:
+    """What to pass as ``--profile`` for ``profile`` in a command we print.
+
+    A bundled one by its name (its path lies inside the installed package), any other by its path.
+    """
+    from gateway import BUNDLED
+
+    try:
+        bundled = profile.path.resolve().parent == BUNDLED.resolve()
+    except OSError:
+        bundled = False
+    return profile.path.stem if bundled else str(profile.path)
+
+
 def load_model_for(profile: Profile, path: str | Path | None) -> tuple[ThermalModel, Path]:
     """Load the model (default: the profile's) and check it fits the profile's factors, units and axes."""
     path = Path(path) if path else profile.model_path
     if not path.exists():
         raise ModelError(f"{path}: model file not found; create it with `cncgw identify --profile "
-                         f"{profile.path} EXPERIMENTS... -o {path}`")
+                         f"{profile_arg(profile)} EXPERIMENTS... -o {path}`")
     model = load_model(path)
     problems = []
     for f in model.factors:

@@ -179,9 +179,13 @@ def resolve_profile(path: str | Path) -> Path:
     from gateway import BUNDLED
 
     p = Path(path)
+    name = p.name[:-len(".toml")] if p.name.endswith(".toml") else p.name
+    if not p.exists() and len(p.parts) != 1 and name in bundled_profiles():
+        # the README's `profiles/sim-vmc.toml` typed outside a checkout (an installed wheel)
+        raise ProfileError(f"{p}: file not found; {name} is a profile bundled with cncgw: from any directory, "
+                           f"--profile {name}")
     if p.exists() or len(p.parts) != 1:
         return p
-    name = p.name[:-len(".toml")] if p.name.endswith(".toml") else p.name
     if name in bundled_profiles():
         return BUNDLED / f"{name}.toml"
     from gateway.errors import did_you_mean
@@ -195,6 +199,10 @@ def load_profile(path: str | Path) -> Profile:
     """Read and check a profile (a file or a bundled profile's name); raise :class:`ProfileError` with all problems."""
     doc = TomlDoc(resolve_profile(path), error=ProfileError)
     root = doc.root
+    if "path" in root and "machine" not in root:
+        # a model file given for the profile: one line, not a dozen unknown keys
+        raise ProfileError(f"{doc.path}: a model file (it has [[path]] tables), not a profile: expected a machine "
+                           "profile with [machine] and [factors.*]; pass the model with --model")
 
     machine = root.table("machine", required=True)
     name = description = ""
