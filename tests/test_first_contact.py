@@ -208,3 +208,33 @@ def test_a_model_file_given_as_the_profile_is_one_line(capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"cncgw: error: {model}: a model file (it has [[path]] tables), not a profile: expected a "
                    "machine profile with [machine] and [factors.*]; pass the model with --model"]
+
+
+# ------------------------------------------------------------------------------------------------ cncgw run ---
+def test_an_opc_ua_port_in_use_is_one_line_saying_what_to_do(caplog):
+    import logging
+    import socket
+
+    from gateway import BUNDLED
+    from gateway.errors import GatewayError
+    from gateway.live.opcua_server import OpcUaServer
+    from gateway.model import load_model
+    from gateway.profile import load_profile
+    from gateway.profile.live import OpcUa
+
+    # another gateway (or the CNC's own OPC UA server) already listens on the profile's port
+    with socket.socket() as other:
+        other.bind(("127.0.0.1", 0))
+        other.listen()
+        port = other.getsockname()[1]
+        caplog.set_level(logging.INFO)
+        server = OpcUaServer(OpcUa(port=port), profile=load_profile("sim-vmc"),
+                             model=load_model(BUNDLED / "sim-vmc.model.toml"))
+        with pytest.raises(GatewayError) as err:
+            server.start()
+    assert str(err.value) == (f"OPC UA server on 127.0.0.1:{port} failed to start: the port is in use (another "
+                              "gateway or OPC UA server on this PC?): expected a free port: set [opcua] port in the "
+                              "profile, or run with --no-opcua")
+    assert err.value.exit_code == 1
+    # asyncua's own record of it, with its traceback, is not printed before that line
+    assert not [r for r in caplog.records if r.exc_info or "error starting server" in r.getMessage()]

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import logging
 import math
 import threading
@@ -57,6 +58,13 @@ from gateway.profile import Profile
 from gateway.profile.live import OpcUa
 
 log = logging.getLogger(__name__)
+
+
+class _DropStartError(logging.Filter):
+    """asyncua's own "error starting server" record (with a traceback): the caller reports the error."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "error starting server" not in record.getMessage()
 
 NAMESPACE = "urn:cncgw"
 START_TIMEOUT_S = 30.0
@@ -230,8 +238,12 @@ class OpcUaServer:
         if self._error is not None:
             self._thread.join()
             self._thread = None
-            raise GatewayError(f"OPC UA server on {self.settings.host}:{self.settings.port} failed to start: "
-                               f"{self._error}") from self._error
+            where = f"{self.settings.host}:{self.settings.port}"
+            if isinstance(self._error, OSError) and self._error.errno == errno.EADDRINUSE:
+                raise GatewayError(f"OPC UA server on {where} failed to start: the port is in use (another gateway "
+                                   "or OPC UA server on this PC?): expected a free port: set [opcua] port in the "
+                                   "profile, or run with --no-opcua") from self._error
+            raise GatewayError(f"OPC UA server on {where} failed to start: {self._error}") from self._error
         return self
 
     def publish(self, health: Health) -> None:
@@ -276,7 +288,13 @@ class OpcUaServer:
             await self._security(server)
             idx = await server.register_namespace(NAMESPACE)
             await self._build(server, idx)
-            await server.start()
+            # asyncua logs a failed start with its traceback before it raises; start() reports it in one line
+            quiet = _DropStartError()
+            logging.getLogger("asyncua.server.server").addFilter(quiet)
+            try:
+                await server.start()
+            finally:
+                logging.getLogger("asyncua.server.server").removeFilter(quiet)
         try:
             assert server.bserver is not None
             self.port = server.bserver.port
