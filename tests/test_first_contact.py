@@ -238,3 +238,19 @@ def test_an_opc_ua_port_in_use_is_one_line_saying_what_to_do(caplog):
     assert err.value.exit_code == 1
     # asyncua's own record of it, with its traceback, is not printed before that line
     assert not [r for r in caplog.records if r.exc_info or "error starting server" in r.getMessage()]
+
+
+# ------------------------------------------------------------------------------------ probes, offline ---
+def test_probes_on_another_clock_than_the_recording_are_said_to_change_nothing(random_spindle, tmp_path, capsys):
+    probes = tmp_path / "probes.csv"
+    # stamped on the shop's clock (seconds since some epoch) while the recording counts from its start
+    probes.write_text("time,seq,x_um,y_um,z_um,sd_um\n1007200,1,0.5,-0.6,2.0,0.3\n1014400,2,0.9,-0.3,3.0,0.3\n")
+    assert main(["estimate", "--profile", "sim-vmc", "--probes", str(probes), str(random_spindle)]) == 0
+    captured = capsys.readouterr()
+    assert (f"cncgw: warning: {probes}: none of its 2 probes (time 1007200-1014400 s) falls within a recording "
+            f"({random_spindle}: 60-21600 s): the estimates below are the model's alone") in captured.err
+    assert "0 probe-axes applied, 0 refused, 2 probes outside this recording" in captured.out
+    # probes within it: no warning
+    probes.write_text("time,seq,x_um,y_um,z_um,sd_um\n7200,1,0.5,-0.6,2.0,0.3\n")
+    assert main(["estimate", "--profile", "sim-vmc", "--probes", str(probes), str(random_spindle)]) == 0
+    assert "warning" not in capsys.readouterr().err

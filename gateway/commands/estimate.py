@@ -124,6 +124,13 @@ def _run_probed(args: argparse.Namespace, profile: Any, model: Any, model_path: 
         figures.append(pr.figures(base.measured))
         if history is not None:
             history = continued(history, r)
+    if probes and all(pr.outside == len(probes) for pr in runs):
+        # the figures below are then the model's alone: most likely the probes' clock is not the recordings'
+        spans = "; ".join(f"{r.source}: {r.time_s[0]:.0f}-{r.time_s[-1]:.0f} s" for r in recs if len(r))
+        print(f"cncgw: warning: {args.probes}: none of its {len(probes)} probes (time {probes[0].time_s:.0f}-"
+              f"{probes[-1].time_s:.0f} s) falls within a recording ({spans}): the estimates below are the model's "
+              "alone; expected probe times on the recordings' clock (seconds or ISO 8601, as their time column)",
+              file=sys.stderr)
     if args.output:
         out = Path(args.output)
         meta = {"model": str(model_path), "profile": str(profile.path), "probes": str(args.probes)}
