@@ -25,3 +25,11 @@ def test_the_bundled_profiles_are_package_data_and_the_commands_read_them_there(
     shipped = {p.name for pattern in patterns for p in (ROOT / "gateway").glob(pattern)}
     assert shipped == {p.name for p in PROFILES.iterdir() if p.is_file()}
     assert {"sim-vmc.toml", "sim-vmc.model.toml", "paper-vm40iii.toml", "template.toml"} <= shipped
+
+
+def test_the_license_is_an_spdx_expression_that_the_build_backend_reads_without_a_deprecation():
+    # setuptools >= 77 warned on every `pip wheel` that the table form stops building after 2027-02-18
+    doc = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    assert doc["project"]["license"] == "Apache-2.0"
+    assert [(ROOT / f).is_file() for f in doc["project"]["license-files"]] == [True]
+    assert "setuptools>=77" in doc["build-system"]["requires"]
