@@ -26,6 +26,7 @@ COMMAND_MODULES = (
     "gateway.commands.model",
     "gateway.commands.record",
     "gateway.commands.run",
+    "gateway.commands.audit",
     "simulators.cli",
     "gateway.commands.demo",
 )

@@ -254,3 +254,30 @@ def test_probes_on_another_clock_than_the_recording_are_said_to_change_nothing(r
     probes.write_text("time,seq,x_um,y_um,z_um,sd_um\n7200,1,0.5,-0.6,2.0,0.3\n")
     assert main(["estimate", "--profile", "sim-vmc", "--probes", str(probes), str(random_spindle)]) == 0
     assert "warning" not in capsys.readouterr().err
+
+
+# ------------------------------------------------- Workflow step 6: compare a dry run's audit log with measurements ---
+def test_audit_prints_a_dry_runs_log_as_csv_without_touching_it(tmp_path, capsys):
+    import csv
+    import io
+
+    from gateway.live.audit import AUDIT_NAME, AuditLog, WriteEntry
+
+    log = AuditLog(tmp_path / AUDIT_NAME)  # a running gateway holds it open
+    log.event(0.0, "start", "gateway", "vmc-3: compensation dry run")
+    log.write(WriteEntry(t_s=3660.0, window=60, mode="dry-run", estimate_um={"x": -0.17, "z": -2.6181},
+                         target_um={"x": 0.25, "z": 3.57}, commanded_um={"x": 0.2, "z": 3.6},
+                         applied_um={"x": float("nan"), "z": float("nan")}, verified=False, wall_s=1.8e9))
+    before = (tmp_path / AUDIT_NAME).read_bytes()
+    assert main(["audit", "--data", str(tmp_path)]) == 0
+    rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
+    assert rows == [{"t_s": "3660.000", "wall_time": "2027-01-15T08:00:00Z", "window": "60", "mode": "dry-run",
+                     "verified": "0", "status": "", "x_estimate_um": "-0.1700", "x_target_um": "0.2500",
+                     "x_commanded_um": "0.2000", "x_applied_um": "", "z_estimate_um": "-2.6181",
+                     "z_target_um": "3.5700", "z_commanded_um": "3.6000", "z_applied_um": "", "note": ""}]
+    assert main(["audit", "--data", str(tmp_path), "--events"]) == 0
+    assert capsys.readouterr().out == "t_s,kind,name,message\n0.000,start,gateway,vmc-3: compensation dry run\n"
+    assert (tmp_path / AUDIT_NAME).read_bytes() == before
+    log.close()
+    assert main(["audit", "--data", str(tmp_path / "nope")]) == 2
+    assert "no audit.sqlite: expected the --data directory of cncgw run" in capsys.readouterr().err

@@ -83,6 +83,15 @@ class AuditLog:
         self._db.execute("PRAGMA synchronous=FULL")
         self._db.executescript(_SCHEMA)
 
+    @classmethod
+    def read_only(cls, path: str | Path) -> AuditLog:
+        """An existing audit file opened read-only (``cncgw audit`` beside a running gateway): nothing written."""
+        log = cls.__new__(cls)
+        log.path = Path(path)
+        log._lock = threading.Lock()
+        log._db = sqlite3.connect(f"{log.path.resolve().as_uri()}?mode=ro", uri=True, check_same_thread=False)
+        return log
+
     def write(self, e: WriteEntry) -> None:
         body = json.dumps(nan_to_none({"estimate_um": dict(e.estimate_um), "target_um": dict(e.target_um),
                                   "commanded_um": dict(e.commanded_um), "applied_um": dict(e.applied_um),
