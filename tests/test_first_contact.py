@@ -281,3 +281,16 @@ def test_audit_prints_a_dry_runs_log_as_csv_without_touching_it(tmp_path, capsys
     log.close()
     assert main(["audit", "--data", str(tmp_path / "nope")]) == 2
     assert "no audit.sqlite: expected the --data directory of cncgw run" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------- never lose recorded data ---
+@pytest.mark.parametrize(("command", "option"), [("estimate", "-o"), ("estimate", "--plot"), ("identify", "--plot"),
+                                                 ("identify", "-o")])
+def test_an_output_naming_an_input_recording_is_refused_before_it_is_touched(command, option, random_spindle,
+                                                                              tmp_path, capsys):
+    rec = tmp_path / "day.csv"
+    rec.write_bytes(random_spindle.read_bytes())
+    extra = ["--force"] if command == "identify" else []  # identify -o: even with --force
+    assert main([command, "--profile", "sim-vmc", str(rec), option, str(rec), *extra]) == 2
+    assert f"{option} {rec}: that is an input of this command ({rec}): expected a new file" in capsys.readouterr().err
+    assert rec.read_bytes() == random_spindle.read_bytes()

@@ -107,6 +107,26 @@ def progress_bar(total: int | None, desc: str) -> tuple[Callable[[str], None], C
     return update, bar.close
 
 
+def refuse_writing_over_inputs(outputs: dict[str, str | None], inputs: Sequence[str | None]) -> None:
+    """Refuse an output option that names one of the command's input files (checked before any work).
+
+    ``estimate REC.csv -o REC.csv`` replaced the recording with its estimates, ``--plot REC.csv`` with a PNG:
+    recorded data lost to a slip of the keyboard.
+    """
+    given = [Path(p) for p in inputs if p]
+    for option, out in outputs.items():
+        if not out:
+            continue
+        for p in given:
+            try:
+                same = Path(out).resolve() == p.resolve() or (Path(out).exists() and Path(out).samefile(p))
+            except OSError:
+                same = False
+            if same:
+                raise UsageError(f"{option} {out}: that is an input of this command ({p}): expected a new file; "
+                                 "it would be replaced")
+
+
 def fail_if_exists(path: Path, force: bool) -> None:
     """Refuse to replace ``path`` unless ``--force`` (checked before the work, so none is lost)."""
     if path.exists() and not force:

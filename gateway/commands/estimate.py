@@ -9,7 +9,12 @@ from pathlib import Path
 from typing import Any
 
 from gateway import plotting
-from gateway.commands._common import add_recording_options, load_model_for, read_recordings
+from gateway.commands._common import (
+    add_recording_options,
+    load_model_for,
+    read_recordings,
+    refuse_writing_over_inputs,
+)
 from gateway.errors import GatewayError, UsageError
 from gateway.prepare import INITIAL_CHOICES
 from gateway.profile import load_profile
@@ -56,6 +61,8 @@ def run(args: argparse.Namespace) -> int:
     """Estimate every recording; print metrics; write CSV and plot on request."""
     if args.plot:
         plotting.require("--plot")
+    refuse_writing_over_inputs({"-o": args.output, "--plot": args.plot},
+                               [*args.recordings, args.history, args.probes, args.model, args.profile])
     profile = load_profile(args.profile)
     model, model_path = load_model_for(profile, args.model)
     if model.machine and model.machine != profile.name:

@@ -6,7 +6,14 @@ import argparse
 from pathlib import Path
 
 from gateway import BUNDLED, plotting
-from gateway.commands._common import add_recording_options, fail_if_exists, positive_int, progress_bar, read_recordings
+from gateway.commands._common import (
+    add_recording_options,
+    fail_if_exists,
+    positive_int,
+    progress_bar,
+    read_recordings,
+    refuse_writing_over_inputs,
+)
 from gateway.errors import UsageError
 from gateway.identify import identify
 from gateway.identify.api import identification_summary
@@ -74,6 +81,8 @@ def run(args: argparse.Namespace) -> int:
     """Identify, write the model, print the report."""
     if args.plot:
         plotting.require("--plot")
+    refuse_writing_over_inputs({"-o": args.output, "--plot": args.plot},
+                               [*args.experiments, *args.production, args.profile])
     profile = load_profile(args.profile)
     out = _output(args, profile)
     # checked before the work: identification takes minutes, and the model a gateway runs is not replaced
