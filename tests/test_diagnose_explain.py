@@ -19,6 +19,7 @@ from gateway.diagnose import diagnose
 from gateway.diagnose.explain import explain, held_corrections
 from gateway.diagnose.hypotheses import Hypothesis, Setting
 from gateway.diagnose.refit import path_corrections
+from gateway.diagnose.report import to_json
 from gateway.diagnose.search import AxisEvidence, Options, Trial, _occam, search
 from gateway.diagnose.select import GridFit
 from gateway.identify import identify
@@ -139,3 +140,28 @@ def test_of_two_the_free_search_cannot_tell_apart_the_one_that_passes_with_the_p
     # significantly better over the blocks: the free search decides
     c = _trial("preload", [w * 0.10 for w in without], without)
     assert _occam([c, b], [c, b], Options(), preferred={"eddy"}) is c
+
+
+def test_when_nothing_explains_the_change_the_report_says_how_near_the_closest_mechanism_came(monkeypatch):
+    # no effect: nothing passes with the paths held; the verdict and report.json still say what was tried there,
+    # the held and free paths' held-out error and the nearest named mechanisms scored beside the held paths
+    d, _ = _diagnosed(monkeypatch, slow=False)
+    ex = _explain(d)
+    assert ex.names == []
+    assert ex.result is not None
+    assert ex.result.accepted == []
+    assert 0 < ex.held_sse_um2 < 10 * ex.free_sse_um2, (ex.held_sse_um2, ex.free_sse_um2)
+    tried = {t.hypothesis.key for t in ex.result.trials}
+    assert ex.closest
+    assert all(c.key in tried for c in ex.closest)
+    best = ex.closest[0]
+    assert f"closest: {best.title}" in ex.verdict, ex.verdict
+    assert f"with the paths free {ex.free_sse_um2:.4g} um^2" in ex.verdict, ex.verdict
+    # scored beside the held paths on the comparison's folds: a term that lowers the search's error there does
+    # not make the held-out recordings much worse
+    assert best.sse_um2 < 1.5 * ex.held_sse_um2
+    doc = to_json(replace(d, explanation=ex))
+    held = [t for t in doc["trials"] if t["track"] == "held"]
+    assert {t["hypothesis"] for t in held} == tried
+    assert doc["explanation"]["closest"][0]["hypothesis"] == best.key
+    assert doc["explanation"]["verdict"] == ex.verdict

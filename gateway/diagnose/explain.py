@@ -37,6 +37,17 @@ KEY = "explained"
 EXPLAINED_SHARE = 0.99
 
 
+@dataclass(frozen=True, kw_only=True)
+class Closest:
+    """A named mechanism that did not pass with the paths held: how much of the paths' change it accounts for."""
+
+    key: str
+    title: str
+    share: float  # of what freeing the paths removed from the held-out squared error (NaN: freeing removed nothing)
+    sse_um2: float  # held-out squared error of the held paths with it
+    verdict: str  # what the held search said of it
+
+
 @dataclass(kw_only=True)
 class Explanation:
     """What the re-identified paths changed, and the physics (if any) that reproduces it with the paths held."""
@@ -47,6 +58,13 @@ class Explanation:
     candidate: Candidate | None = None  # the held paths with the named terms, scored on the comparison's folds
     terms: dict[str, list[Term]] = field(default_factory=dict)  # the named terms as the candidate's model has them
     verdict: str = ""
+    #: held-out squared error (um^2, the comparison's folds) of the paths held at the identified time constants
+    #: (gains refitted) and of the paths free (the bank of lags): the change the named terms must account for
+    held_sse_um2: float = math.nan
+    free_sse_um2: float = math.nan
+    #: the named mechanisms that came closest with the paths held (when nothing passed there): each at the
+    #: setting the held search chose, its share of what freeing the paths removed, as ``Closest``
+    closest: list[Closest] = field(default_factory=list)
 
     @property
     def names(self) -> list[str]:
@@ -116,10 +134,6 @@ def explain(stack: Stack, model: ThermalModel, reid: Reidentified, comparison: C
     result = search(stack, physics, block=block, artefacts=dict(artefacts), options=options, corrections=held,
                     progress=(lambda m: progress(f"held: {m}")) if progress else None)
     out.result = result
-    accepted = [t for t in result.accepted if writable(t)]
-    if not accepted:
-        out.verdict = "no hypothesis adds to the paths held at the identified time constants"
-        return out
     # the same linear fits on the same folds with the paths held and nothing added, and with the paths left free
     # (every input through the refit search's bank of lags up to the experiments' length, no new term): the terms
     # explain the change when they recover what freeing the paths gained, all but a share within the noise; the
@@ -130,6 +144,23 @@ def explain(stack: Stack, model: ThermalModel, reid: Reidentified, comparison: C
     free = _candidate(stack, block, comparison.folds, comparison.score, key="free", title="", model=model,
                       extra={a: bank for a in stack.axes}, artefacts=artefacts)
     gap = held_only.sse - free.sse
+    out.held_sse_um2, out.free_sse_um2 = held_only.sse, free.sse
+    accepted = [t for t in result.accepted if writable(t)]
+    if not accepted:
+        # nothing to name; say how far the nearest named mechanisms got, so a reader sees what was tried and why
+        # it is not named (an effect that shaped the identification runs leaves the held paths' time constants
+        # wrong, and a term beside them then recovers little of what freeing the paths did)
+        out.closest = closest(stack, block, comparison, result, held, held_only.sse, gap, model=model,
+                              artefacts=artefacts)
+        out.verdict = (f"no named mechanism adds significantly and relevantly to the paths held at the identified "
+                       f"time constants (held-out squared error with them held {held_only.sse:.4g}, with the paths "
+                       f"free {free.sse:.4g} um^2)")
+        if out.closest:
+            c = out.closest[0]
+            recovers = (f" recovers {100 * c.share:.0f} % of what freeing the paths removed" if math.isfinite(c.share)
+                        else "")
+            out.verdict += f"; closest: {c.title}{recovers} (with it {c.sse_um2:.4g} um^2; {c.verdict})"
+        return out
     for k in range(1, len(accepted) + 1):
         extra = {}
         for a in stack.axes:
@@ -174,6 +205,36 @@ def explain(stack: Stack, model: ThermalModel, reid: Reidentified, comparison: C
         else:
             cand.verdict += "; named; the re-identified model predicts better and is written"
     return out
+
+
+#: how many of the named mechanisms nearest to passing with the paths held are scored and reported
+CLOSEST = 3
+
+
+def closest(stack: Stack, block: np.ndarray, comparison: Comparison, result: SearchResult,
+            held: Mapping[str, Sequence[np.ndarray]], held_sse: float, gap: float, *, model: ThermalModel,
+            artefacts: Mapping[str, Sequence[np.ndarray]]) -> list[Closest]:
+    """The :data:`CLOSEST` named mechanisms that lowered the held search's first-round error most, scored again.
+
+    Each is scored beside the held paths on the comparison's folds at the settings it chose there (on the axes
+    it improved). For the report only (what came nearest, and what share of the paths' change it accounts
+    for); nothing here names or writes anything.
+    """
+    first = [t for t in result.trials if t.round == 1 and not t.hypothesis.artefact]
+    ranked = sorted(first, key=lambda t: -sum(max(e.sse_before - e.sse_after, 0.0) for e in t.evidence.values()))
+    out = []
+    for t in ranked[:CLOSEST]:
+        on = {a: e for a, e in t.evidence.items() if e.setting is not None and e.sse_after < e.sse_before}
+        if not on:
+            continue
+        extra = {a: list(held.get(a, [])) + (setting_columns(stack, on[a].setting)[0] if a in on else [])
+                 for a in stack.axes}
+        c = _candidate(stack, block, comparison.folds, comparison.score, key="closest", title="", model=model,
+                       extra=extra, artefacts=artefacts)
+        share = (held_sse - c.sse) / gap if gap > 0 else math.nan
+        out.append(Closest(key=t.hypothesis.key, title=t.hypothesis.title, share=share, sse_um2=c.sse,
+                           verdict=t.verdict))
+    return sorted(out, key=lambda c: c.sse_um2)
 
 
 def held_model(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,

@@ -73,6 +73,7 @@ def to_json(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = "",
             "correlations": [vars(c) for c in f.correlations],
         }
     ad = d.adequacy
+    ex = d.explanation
     return _plain({
         "recordings": list(d.stack.sources), "labels": [recording_label(s) for s in d.stack.sources],
         "axes": list(d.model.axes), "wall_s": d.wall_s,
@@ -97,7 +98,15 @@ def to_json(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = "",
                   for a, ts in written_terms(d).items()},
         "at_search_bound": bound_flags(d),
         "findings": findings,
-        "trials": [trial(t) | {"track": name} for name, r in d.results.items() for t in r.trials],
+        "trials": [trial(t) | {"track": name} for name, r in d.results.items() for t in r.trials]
+        # the search with the paths held at the identified time constants (when more data alone won): why a
+        # mechanism is or is not named
+        + [trial(t) | {"track": "held"} for t in (ex.result.trials if ex is not None and ex.result else [])],
+        "explanation": None if ex is None else {
+            "verdict": ex.verdict, "named": ex.names, "paths_changed": ex.changes,
+            "held_sse_um2": _finite(ex.held_sse_um2), "free_sse_um2": _finite(ex.free_sse_um2),
+            "closest": [{"hypothesis": c.key, "title": c.title, "share_of_paths_change": _finite(c.share),
+                         "held_out_sse_um2": c.sse_um2, "verdict": c.verdict} for c in ex.closest]},
         "extended_model": model_file, "derived_inputs": [i.name for i in d.extended.inputs], "figures": list(figures),
     })
 
