@@ -294,3 +294,12 @@ def test_an_output_naming_an_input_recording_is_refused_before_it_is_touched(com
     assert main([command, "--profile", "sim-vmc", str(rec), option, str(rec), *extra]) == 2
     assert f"{option} {rec}: that is an input of this command ({rec}): expected a new file" in capsys.readouterr().err
     assert rec.read_bytes() == random_spindle.read_bytes()
+
+
+@pytest.mark.parametrize("args", [["--seed", "-3"], ["--variant", "-1"], ["--probes-every-h", "0"],
+                                  ["--probes-every-h", "13"]])
+def test_a_bad_simulate_record_option_value_is_a_usage_error(args, tmp_path, capsys):
+    # exit 2 as the README's table says for a bad argument value (7 is a bad scenario file)
+    assert main(["simulate", "record", "spindle-1000rpm", "-o", str(tmp_path), *args]) == 2
+    assert f"cncgw: error: {args[0]}" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())

@@ -124,5 +124,5 @@ def test_a_bad_variant_is_refused_naming_the_key_or_option(tmp_path: Path, capsy
     with pytest.raises(SimulationError) as err:
         load_scenario(bad)
     assert f"{bad}:13: plant.variant: expected an integer >= 0, got -2 (an integer)" in str(err.value)
-    assert main(["simulate", "record", "spindle-1000rpm", "-o", str(tmp_path), "--variant", "-1"]) == 7
+    assert main(["simulate", "record", "spindle-1000rpm", "-o", str(tmp_path), "--variant", "-1"]) == 2  # usage
     assert "--variant: expected an integer >= 0 (0: the nominal machine), got -1" in capsys.readouterr().err

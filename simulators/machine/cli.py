@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
-from gateway.errors import SimulationError
+from gateway.errors import SimulationError, UsageError
 
 
 def add_actions(actions: argparse._SubParsersAction) -> None:
@@ -56,15 +56,15 @@ def run_record(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     if args.seed is not None:
         if args.seed < 0:
-            raise SimulationError(f"--seed: expected an integer >= 0, got {args.seed}")
+            raise UsageError(f"--seed: expected an integer >= 0, got {args.seed}")
         scenario = dataclasses.replace(scenario, seed=args.seed)
     if args.variant is not None:
         if args.variant < 0:
-            raise SimulationError(f"--variant: expected an integer >= 0 (0: the nominal machine), got {args.variant}")
+            raise UsageError(f"--variant: expected an integer >= 0 (0: the nominal machine), got {args.variant}")
         scenario = dataclasses.replace(scenario, variant=args.variant)
     every_h = args.probes_every_h
     if every_h is not None and not (0 < every_h <= scenario.duration_h and 0 < args.probe_sd_um <= 50):
-        raise SimulationError(f"--probes-every-h {every_h:g} --probe-sd-um {args.probe_sd_um:g}: expected an interval "
+        raise UsageError(f"--probes-every-h {every_h:g} --probe-sd-um {args.probe_sd_um:g}: expected an interval "
                               f"in (0, {scenario.duration_h:g}] h (the run's length) and an uncertainty in (0, 50] um")
     result = simulate(scenario, progress=not args.no_progress)
     try:
@@ -109,7 +109,7 @@ def run_list(args: argparse.Namespace) -> int:
         from simulators.machine.variants import plant_variant
 
         if args.variant < 0:
-            raise SimulationError(f"--variant: expected an integer >= 0 (0: the nominal machine), got {args.variant}")
+            raise UsageError(f"--variant: expected an integer >= 0 (0: the nominal machine), got {args.variant}")
         print()
         print("\n".join(plant_variant(args.variant).describe()))
     return 0
