@@ -4,6 +4,7 @@ from outside the repository, and the files a user really makes (spreadsheets, wr
 from __future__ import annotations
 
 import json
+import re
 import sys
 
 import pytest
@@ -303,3 +304,24 @@ def test_a_bad_simulate_record_option_value_is_a_usage_error(args, tmp_path, cap
     assert main(["simulate", "record", "spindle-1000rpm", "-o", str(tmp_path), *args]) == 2
     assert f"cncgw: error: {args[0]}" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
+
+
+def test_record_with_a_device_that_never_answers_exits_8_and_keeps_what_it_recorded(tmp_path, capsys):
+    import socket
+
+    with socket.socket() as s:  # a port nothing listens on: the board is off or the address is wrong
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    profile = _profile(tmp_path, "port = 5020", f"port = {port}")
+    out = tmp_path / "rec"
+    # it exited 0 after a run of empty windows: a script or a unit took that for a recording
+    assert main(["record", "--profile", str(profile), "--out", str(out), "--speedup", "60", "--minutes", "1",
+                 "--quiet"]) == 8
+    captured = capsys.readouterr()
+    assert 'cncgw: error: device "adc" never answered while recording' in captured.err
+    assert f"cannot connect to 127.0.0.1:{port}" in captured.err
+    assert f"exported to {out / 'sim-vmc.csv'}" in captured.out
+    text = (out / "sim-vmc.csv").read_text()
+    windows = int(re.search(r"# windows: (\d+)", text).group(1))
+    assert windows >= 1
+    assert f"# insufficient_windows: {windows} (factors left empty)" in text

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from gateway.clock import Clock, RealClock, ScaledClock
 from gateway.commands._common import positive_float
-from gateway.errors import GatewayError, UsageError
+from gateway.errors import DriverError, GatewayError, UsageError
 from gateway.profile import load_profile
 from gateway.record_store import STORE_NAME, RecordStore, export_recording
 from gateway.windows import WindowRecord, window_index
@@ -111,7 +111,8 @@ def run(args: argparse.Namespace) -> int:
         finally:
             if previous is not None:
                 signal.signal(signal.SIGTERM, previous)
-        for s in acq.status():
+        statuses = acq.status()
+        for s in statuses:
             print(f"device {s.device}: {s.reads_ok} reads, {s.reads_failed} failed ({s.timeouts} timeouts), "
                   f"{s.ticks_skipped} ticks skipped, {s.off_scan_ticks} off-scan, {s.recoveries} recoveries")
         if len(store):
@@ -119,6 +120,14 @@ def run(args: argparse.Namespace) -> int:
             print(f"{len(store)} windows in {store.path}; exported to {export_path}")
         else:
             print(f"no whole window recorded in {store.path}")
+        # a device that never answered made a recording of empty windows: a script (cron, a unit) must not take
+        # it for a good one; what was recorded stays stored and exported above
+        silent = [s for s in statuses if s.reads_ok == 0 and (s.reads_failed or s.off_scan_ticks)]
+        if silent:
+            raise DriverError("\n".join(
+                f'device "{s.device}" never answered while recording ({s.reads_failed} reads failed, '
+                f"{s.off_scan_ticks} ticks off-scan){': ' + s.errors[0] if s.errors else ''}: expected the "
+                f"device on line (the windows it feeds are insufficient, kept in {store.path})" for s in silent))
     return 0
 
 
