@@ -303,6 +303,19 @@ def _read_recording(path: Path, *, factor_columns: Mapping[str, str], displaceme
                              f"{time_column or 'spindle_speed'},...")
     if header and header[0] == "" and all(h for h in header[1:]):
         header[0] = "_index"  # pandas-style unnamed index column
+    named = len(header)
+    while named > 1 and not header[named - 1]:
+        named -= 1
+    if named < len(header):
+        # a spreadsheet's trailing separators (its used range wider than the data): nameless, empty columns
+        for n, cells in rows:
+            i = next((i for i in range(named, len(cells)) if cells[i].strip()), None)
+            if i is not None:
+                raise RecordingError(f'{path}:{n}: column {i + 1} holds "{_clip(cells[i].strip())}" but has no name '
+                                     f"in the header on line {header_line}: expected a name for every column with "
+                                     "data")
+        header = header[:named]
+        rows = [(n, cells[:named]) for n, cells in rows]
     for i, h in enumerate(header):
         if not h:
             raise RecordingError(f"{path}:{header_line}: column {i + 1} has an empty name")

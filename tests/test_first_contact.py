@@ -325,3 +325,26 @@ def test_record_with_a_device_that_never_answers_exits_8_and_keeps_what_it_recor
     windows = int(re.search(r"# windows: (\d+)", text).group(1))
     assert windows >= 1
     assert f"# insufficient_windows: {windows} (factors left empty)" in text
+
+
+def test_a_spreadsheets_trailing_empty_columns_are_ignored_and_a_nameless_column_with_data_is_not(random_spindle,
+                                                                                                   tmp_path, capsys):
+    from gateway.profile import load_profile
+    from gateway.recording import read_for_profile
+
+    lines = [ln if ln.startswith("#") else ln + ";;" for ln in _excel(random_spindle.read_text()).decode("utf-8")
+             .removeprefix("\ufeff").splitlines()]
+    wide = tmp_path / "wide.csv"
+    wide.write_text("\r\n".join(lines) + "\r\n")
+    profile = load_profile("sim-vmc")
+    a, b = read_for_profile(random_spindle, profile), read_for_profile(wide, profile)
+    assert b.factors["spindle_speed"].tolist() == a.factors["spindle_speed"].tolist()
+    assert b.displacement["z"].tolist() == a.displacement["z"].tolist()
+    assert set(b.extras) == set(a.extras)
+    # a value under a nameless column is data without a name: still an error naming the column
+    row = next(i for i, ln in enumerate(lines) if ln.startswith("600,0;"))
+    lines[row] += "7"
+    wide.write_text("\r\n".join(lines) + "\r\n")
+    assert main(["estimate", "--profile", "sim-vmc", str(wide)]) == 4
+    assert (f'{wide}:{row + 1}: column 15 holds "7" but has no name in the header on line 7: expected a name for '
+            "every column with data") in capsys.readouterr().err
