@@ -67,8 +67,9 @@ def test_identify_never_replaces_a_model_unless_forced(workdir, capsys):
     assert main(["identify", "--profile", "lathe.toml", "exp1.csv", "exp2.csv", "-o", "model.toml"]) == 0
     first = Path("model.toml").read_bytes()
     capsys.readouterr()
-    # refused before any work (the exit code of a bad argument), the model a gateway may be running untouched
-    assert main(["identify", "--profile", "lathe.toml", "exp1.csv", "-o", "model.toml"]) == 2
+    # refused before any work (exit 1: an output exists without --force), the model a gateway may be running
+    # untouched
+    assert main(["identify", "--profile", "lathe.toml", "exp1.csv", "-o", "model.toml"]) == 1
     assert "cncgw: error: model.toml exists: pass --force to replace it, or -o another file" in capsys.readouterr().err
     assert Path("model.toml").read_bytes() == first
     assert main(["identify", "--profile", "lathe.toml", "exp1.csv", "-o", "model.toml", "--force"]) == 0

@@ -348,3 +348,16 @@ def test_a_spreadsheets_trailing_empty_columns_are_ignored_and_a_nameless_column
     assert main(["estimate", "--profile", "sim-vmc", str(wide)]) == 4
     assert (f'{wide}:{row + 1}: column 15 holds "7" but has no name in the header on line 7: expected a name for '
             "every column with data") in capsys.readouterr().err
+
+
+def test_an_audit_csv_that_exists_is_not_replaced_without_force_exit_1(tmp_path, capsys):
+    from gateway.live.audit import AUDIT_NAME, AuditLog
+
+    AuditLog(tmp_path / AUDIT_NAME).close()
+    out = tmp_path / "audit.csv"
+    out.write_text("mine\n")
+    assert main(["audit", "--data", str(tmp_path), "-o", str(out)]) == 1  # the table: an output exists
+    assert f"{out} exists: pass --force to replace it" in capsys.readouterr().err
+    assert out.read_text() == "mine\n"
+    assert main(["audit", "--data", str(tmp_path), "-o", str(out), "--force"]) == 0
+    assert out.read_text().startswith("t_s,wall_time,window,mode")

@@ -7,7 +7,7 @@ import re
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from gateway.errors import ModelError, UsageError
+from gateway.errors import GatewayError, ModelError, UsageError
 from gateway.model import ThermalModel, load_model
 from gateway.profile import Profile
 from gateway.recording import Recording, read_for_profile
@@ -128,6 +128,9 @@ def refuse_writing_over_inputs(outputs: dict[str, str | None], inputs: Sequence[
 
 
 def fail_if_exists(path: Path, force: bool) -> None:
-    """Refuse to replace ``path`` unless ``--force`` (checked before the work, so none is lost)."""
+    """Refuse to replace ``path`` unless ``--force`` (checked before the work, so none is lost).
+
+    Exit 1, as the exit-code table says of an output that exists without --force (and as diagnose's report).
+    """
     if path.exists() and not force:
-        raise UsageError(f"{path} exists: pass --force to replace it, or -o another file")
+        raise GatewayError(f"{path} exists: pass --force to replace it, or -o another file")
