@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from gateway.adaptive.probes import Probe
-from gateway.errors import RecordingError
+from gateway.errors import GatewayError, RecordingError
 from gateway.profile import Profile
 from gateway.recording import RecordingWriter
 from gateway.strict_json import nan_to_none
@@ -73,7 +73,12 @@ def private_dir(path: str | Path) -> Path:
     directory this user does not own is left as it is, with a warning.
     """
     path = Path(path)
-    path.mkdir(mode=0o700, parents=True, exist_ok=True)
+    try:
+        path.mkdir(mode=0o700, parents=True, exist_ok=True)
+    except OSError as exc:  # a file of that name, a folder this user may not write: one line, not a traceback
+        reason = 'a file, not a directory' if path.is_file() else exc.strerror or exc
+        raise GatewayError(f"{path}: cannot be the data directory: {reason}: expected a directory this "
+                           "user can create and write") from None
     _narrow(path, 0o700)
     return path
 

@@ -361,3 +361,16 @@ def test_an_audit_csv_that_exists_is_not_replaced_without_force_exit_1(tmp_path,
     assert out.read_text() == "mine\n"
     assert main(["audit", "--data", str(tmp_path), "-o", str(out), "--force"]) == 0
     assert out.read_text().startswith("t_s,wall_time,window,mode")
+
+
+@pytest.mark.parametrize("command", ["run", "record"])
+def test_a_data_directory_that_is_a_file_is_one_line_not_a_traceback(command, tmp_path, capsys):
+    target = tmp_path / "data"
+    target.write_text("a file the user had there\n")
+    option = "--data" if command == "run" else "--out"
+    assert main([command, "--profile", "sim-vmc", option, str(target), "--minutes", "1", "--speedup", "60"]) == 1
+    err = capsys.readouterr().err
+    what = "data" if command == "run" else "output"
+    assert f"cncgw: error: {target}: cannot be the {what} directory: a file, not a directory" in err
+    assert "Traceback" not in err
+    assert target.read_text() == "a file the user had there\n"

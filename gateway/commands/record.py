@@ -65,7 +65,12 @@ def run(args: argparse.Namespace) -> int:
         raise GatewayError(f"{profile.path}: no [devices] to record from (this is an offline profile)")
     if args.verbose < 2:
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # our runner reports device errors once
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        reason = 'a file, not a directory' if out.is_file() else exc.strerror or exc
+        raise GatewayError(f"{out}: cannot be the output directory: {reason}: expected a directory this "
+                           "user can create and write") from None
     from threadpoolctl import threadpool_limits
 
     from gateway.sampler import Acquisition
