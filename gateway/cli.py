@@ -8,6 +8,7 @@ become one line per problem on stderr and a non-zero exit status, never a traceb
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import logging
 import sys
@@ -81,6 +82,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     except BrokenPipeError:
         return 141
+    except OSError as exc:  # an output path in a folder that does not exist, a file where a folder goes, ...
+        hint = {errno.ENOENT: " (an output's folder must exist)",
+                errno.EEXIST: " (a file where a directory is expected)"}.get(exc.errno, "") if exc.filename else ""
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"cncgw: error: {where}{exc.strerror or exc}{hint}", file=sys.stderr)
+        logging.getLogger("gateway").debug("the error's traceback", exc_info=True)  # -vv
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

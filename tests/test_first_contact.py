@@ -374,3 +374,24 @@ def test_a_data_directory_that_is_a_file_is_one_line_not_a_traceback(command, tm
     assert f"cncgw: error: {target}: cannot be the {what} directory: a file, not a directory" in err
     assert "Traceback" not in err
     assert target.read_text() == "a file the user had there\n"
+
+
+def test_an_output_in_a_missing_folder_is_one_line_and_refused_before_the_work_where_it_is_slow(random_spindle,
+                                                                                                 tmp_path, capsys):
+    missing = tmp_path / "nodir"
+    # estimate (seconds): written at the end, one line naming the file (it was a FileNotFoundError traceback)
+    assert main(["estimate", "--profile", "sim-vmc", str(random_spindle), "-o", str(missing / "p.csv")]) == 1
+    assert capsys.readouterr().err == (f"cncgw: error: {missing / 'p.csv'}: No such file or directory (an output's "
+                                       "folder must exist)\n")
+    # identify, diagnose, plan (minutes): refused before the work; identify had fitted, then failed on its .tmp
+    assert main(["identify", "--profile", "sim-vmc", str(tmp_path / "none.csv"), "-o", str(missing / "m.toml")]) == 2
+    assert f"-o {missing / 'm.toml'}: the folder {missing} does not exist" in capsys.readouterr().err
+    afile = tmp_path / "afile"
+    afile.write_text("x\n")
+    none = str(tmp_path / "none.csv")
+    for command in (["diagnose", "--profile", "sim-vmc", none], ["plan", "--profile", "sim-vmc", none,
+                                                                 "--production", none]):
+        assert main([*command, "-o", str(afile)]) == 2
+        assert f"-o {afile}: a file, not a directory" in capsys.readouterr().err
+    assert not missing.exists()
+    assert afile.read_text() == "x\n"

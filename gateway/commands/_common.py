@@ -127,6 +127,21 @@ def refuse_writing_over_inputs(outputs: dict[str, str | None], inputs: Sequence[
                                  "it would be replaced")
 
 
+def check_output(option: str, path: str | None, *, directory: bool = False) -> None:
+    """Refuse, before any work, an output the command could not write at its end.
+
+    A file whose folder does not exist, or (``directory``) a file where a directory goes (created if missing).
+    """
+    if not path:
+        return
+    p = Path(path)
+    if directory:
+        if p.exists() and not p.is_dir():
+            raise UsageError(f"{option} {p}: a file, not a directory: expected a directory (created if missing)")
+    elif not p.parent.is_dir():
+        raise UsageError(f"{option} {p}: the folder {p.parent} does not exist: expected a file in an existing folder")
+
+
 def fail_if_exists(path: Path, force: bool) -> None:
     """Refuse to replace ``path`` unless ``--force`` (checked before the work, so none is lost).
 

@@ -18,7 +18,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from gateway.commands._common import fail_if_exists
+from gateway.commands._common import check_output, fail_if_exists
 from gateway.errors import GatewayError, UsageError
 
 if TYPE_CHECKING:
@@ -51,6 +51,7 @@ def run(args: argparse.Namespace) -> int:
                          "demo's DIR/live)")
     out = Path(args.output) if args.output else None
     if out is not None:
+        check_output("-o", args.output)
         fail_if_exists(out, args.force)
     log = None
     try:

@@ -15,6 +15,7 @@ import numpy as np
 from gateway import plotting
 from gateway.commands._common import (
     add_recording_options,
+    check_output,
     load_model_for,
     positive_float,
     positive_int,
@@ -111,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
     from gateway.diagnose.api import validate
     from gateway.diagnose.report import to_json
 
+    check_output("-o", args.output, directory=True)
     profile = load_profile(args.profile)
     model, model_path = load_model_for(profile, args.model)
     recs = read_recordings(args.recordings, profile, period_s=args.period_s, require_displacement=False)

@@ -11,6 +11,7 @@ from typing import Any
 from gateway import plotting
 from gateway.commands._common import (
     add_recording_options,
+    check_output,
     load_model_for,
     read_recordings,
     refuse_writing_over_inputs,
@@ -63,6 +64,7 @@ def run(args: argparse.Namespace) -> int:
         plotting.require("--plot")
     refuse_writing_over_inputs({"-o": args.output, "--plot": args.plot},
                                [*args.recordings, args.history, args.probes, args.model, args.profile])
+    check_output("--plot", args.plot)
     profile = load_profile(args.profile)
     model, model_path = load_model_for(profile, args.model)
     if model.machine and model.machine != profile.name:

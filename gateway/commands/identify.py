@@ -8,6 +8,7 @@ from pathlib import Path
 from gateway import BUNDLED, plotting
 from gateway.commands._common import (
     add_recording_options,
+    check_output,
     fail_if_exists,
     positive_int,
     progress_bar,
@@ -83,6 +84,8 @@ def run(args: argparse.Namespace) -> int:
         plotting.require("--plot")
     refuse_writing_over_inputs({"-o": args.output, "--plot": args.plot},
                                [*args.experiments, *args.production, args.profile])
+    check_output("-o", args.output)
+    check_output("--plot", args.plot)
     profile = load_profile(args.profile)
     out = _output(args, profile)
     # checked before the work: identification takes minutes, and the model a gateway runs is not replaced

@@ -6,7 +6,13 @@ import argparse
 import json
 from pathlib import Path
 
-from gateway.commands._common import add_recording_options, positive_float, positive_int, read_recordings
+from gateway.commands._common import (
+    add_recording_options,
+    check_output,
+    positive_float,
+    positive_int,
+    read_recordings,
+)
 from gateway.errors import UsageError
 from gateway.identify import identify
 from gateway.plan import LEAD_IN_MIN, plan
@@ -43,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
     if args.max_hours * 60.0 <= LEAD_IN_MIN + 60.0:
         raise UsageError(f"--max-hours {args.max_hours:g}: expected more than {(LEAD_IN_MIN + 60.0) / 60:g} h "
                          "(the rest before an experiment and an hour of it)")
+    check_output("-o", args.output, directory=True)
     profile = load_profile(args.profile)
     exps = read_recordings(args.experiments, profile, period_s=args.period_s, require_displacement=True)
     prod = read_recordings(args.production, profile, period_s=args.period_s, require_displacement=False)
