@@ -395,3 +395,12 @@ def test_an_output_in_a_missing_folder_is_one_line_and_refused_before_the_work_w
         assert f"-o {afile}: a file, not a directory" in capsys.readouterr().err
     assert not missing.exists()
     assert afile.read_text() == "x\n"
+
+
+def test_a_profile_made_by_profile_new_is_found_by_its_name_as_the_bundled_ones_are(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["profile", "new", "vmc-3"]) == 0
+    capsys.readouterr()
+    # `--profile sim-vmc` works from anywhere, so a newcomer types `--profile vmc-3` for the one just made
+    assert main(["profile", "check", "vmc-3"]) == 0
+    assert capsys.readouterr().out.startswith("profile   vmc-3.toml: OK")

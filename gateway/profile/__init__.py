@@ -171,10 +171,11 @@ def bundled_profiles() -> list[str]:
 
 
 def resolve_profile(path: str | Path) -> Path:
-    """``path`` when it names a file; else the bundled profile of that name (``sim-vmc`` or ``sim-vmc.toml``).
+    """``path`` when it names a file; else ``NAME.toml`` here; else the bundled profile of that name.
 
-    A bare name that is neither raises :class:`ProfileError` listing the bundled names, so an installed
-    gateway finds its bundled profiles from any directory.
+    ``sim-vmc`` or ``sim-vmc.toml`` name the bundled one unless such a file is here. A bare name that is
+    neither raises :class:`ProfileError` listing the bundled names, so an installed gateway finds its bundled
+    profiles from any directory.
     """
     from gateway import BUNDLED
 
@@ -186,6 +187,8 @@ def resolve_profile(path: str | Path) -> Path:
                            f"--profile {name}")
     if p.exists() or len(p.parts) != 1:
         return p
+    if p.suffix != ".toml" and p.with_name(f"{p.name}.toml").is_file():
+        return p.with_name(f"{p.name}.toml")  # `--profile vmc-3` for the vmc-3.toml `profile new` wrote here
     if name in bundled_profiles():
         return BUNDLED / f"{name}.toml"
     from gateway.errors import did_you_mean
