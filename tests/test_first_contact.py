@@ -404,3 +404,13 @@ def test_a_profile_made_by_profile_new_is_found_by_its_name_as_the_bundled_ones_
     # `--profile sim-vmc` works from anywhere, so a newcomer types `--profile vmc-3` for the one just made
     assert main(["profile", "check", "vmc-3"]) == 0
     assert capsys.readouterr().out.startswith("profile   vmc-3.toml: OK")
+
+
+def test_a_profile_given_as_the_model_is_one_line(random_spindle, capsys):
+    from gateway import BUNDLED
+
+    profile = BUNDLED / "sim-vmc.toml"
+    assert main(["estimate", "--profile", "sim-vmc", "--model", str(profile), str(random_spindle)]) == 5
+    assert capsys.readouterr().err.splitlines() == [
+        f"cncgw: error: {profile}: a machine profile (it has [machine]), not a model file: expected a model written "
+        "by cncgw identify; pass the profile with --profile (its [model] file is the default model)"]

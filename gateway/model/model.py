@@ -440,6 +440,11 @@ def load_model(path: str | Path, *, text: str | None = None) -> ThermalModel:
     """Read and check a model file; raise :class:`ModelError` listing every problem."""
     doc = TomlDoc(path, error=ModelError, text=text)
     root = doc.root
+    if "machine" in root and "format" not in root and "path" not in root:
+        # a machine profile given for the model: one line, not a dozen missing keys
+        raise ModelError(f"{doc.path}: a machine profile (it has [machine]), not a model file: expected a model "
+                         "written by cncgw identify; pass the profile with --profile (its [model] file is the "
+                         "default model)")
     fmt = root.int("format", expected=f"the model format number {FORMAT}")
     if fmt is not None and fmt != FORMAT:
         root.problem("format", f"expected {FORMAT}, got {fmt}: this model was written by another version")
