@@ -166,8 +166,16 @@ def setting_columns(stack: Stack, setting: Setting) -> tuple[list[np.ndarray], l
 def _design(stack: Stack, setting: Setting, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     phys, nuis = setting_columns(stack, setting)
     cols = phys + nuis
-    every = len(rows) == stack.n  # every window measured: the columns as they are (no copy of each first)
-    X = np.column_stack(cols if every else [c[rows] for c in cols]) if cols else np.zeros((len(rows), 0))
+    # laid out a regressor to a row (the (n, p) design is its transpose, a view): grid_scores works on the rows,
+    # so each column is copied once, straight into place
+    XT = np.empty((len(cols), len(rows)))
+    every = len(rows) == stack.n  # every window measured: the columns as they are
+    for k, c in enumerate(cols):
+        if every:
+            XT[k] = c
+        else:
+            np.take(c, rows, out=XT[k])
+    X = XT.T
     signs = np.zeros(len(cols))
     signs[: len(setting.signs)] = setting.signs
     limits = np.full(len(cols), np.inf)
@@ -262,6 +270,7 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
     sse_rounds: dict[str, list[float]] = {a.name: [] for a in axes}
     # an axis on which the round before accepted nothing has the same fixed columns: its grid scores are the same
     scored: dict[tuple[str, int, int], GridScores] = {}
+    held_scored: dict[tuple[str, int, int], GridScores] = {}  # the same, of the held axes (the held check's)
     for rnd in range(1, options.max_rounds + 1):
         round_trials = []
         for h in remaining:
@@ -288,7 +297,8 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
             if progress:
                 progress(f"round {rnd}: the paths held")
             named = [h for h in remaining if not h.artefact and not h.generic]
-            refused, held_passing = _held_check(stack, passing, named, round_trials, held_axes, options)
+            refused, held_passing = _held_check(stack, passing, named, round_trials, held_axes, options,
+                                                scored=held_scored)
             for t in passing:
                 if id(t) in refused:
                     t.verdict = f"not taken: passes with the paths free, but {refused[id(t)]}"
@@ -311,7 +321,8 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
 
 
 def _held_check(stack: Stack, passing: Sequence[Trial], named: Sequence[Hypothesis], round_trials: Sequence[Trial],
-                held_axes: Sequence[_Axis], o: Options) -> tuple[dict[int, str], set[str]]:
+                held_axes: Sequence[_Axis], o: Options, *,
+                scored: dict[tuple[str, int, int], GridScores] | None = None) -> tuple[dict[int, str], set[str]]:
     """The passing trials refused with the paths held (by ``id``), and why; the keys that pass there too.
 
     Beside free paths (the bank of lags) a hypothesis is judged by what it adds to whatever the paths can
@@ -343,7 +354,7 @@ def _held_check(stack: Stack, passing: Sequence[Trial], named: Sequence[Hypothes
     hyps = list(named) + [t.hypothesis for t in check if t.hypothesis.key not in keys]
     tried: dict[str, Trial] = {}
     for h in hyps:
-        ev = _evidence(stack, [ax for ax in held_axes if h.settings.get(ax.name)], h)
+        ev = _evidence(stack, [ax for ax in held_axes if h.settings.get(ax.name)], h, scored)
         if ev:
             tried[h.key] = Trial(hypothesis=h, round=0, evidence=ev,
                                  p=min(1.0, len(ev) * min(e.p for e in ev.values())))

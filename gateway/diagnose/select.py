@@ -144,8 +144,8 @@ def _run_sums(fold: Fold, XT: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarra
     """Per-slot sums X'F, X'X, X'r of G settings' scaled regressors, and X's scale (G, p).
 
     ``XT`` (G p, n): setting g's regressors are rows g p .. g p + p - 1 (windows along a row, so each row
-    is one contiguous column of the stack). Returned slots first: (K + 1, G, p, q), (K + 1, G, p, p),
-    (K + 1, G, p) (slot K: burn-in rows). X'F is one matrix product per contiguous run
+    is one contiguous column of the stack; scaled in place). Returned slots first: (K + 1, G, p, q),
+    (K + 1, G, p, p), (K + 1, G, p) (slot K: burn-in rows). X'F is one matrix product per contiguous run
     of a block for the whole batch (the fixed columns are read once, not once per setting); X'X and X'r are
     sums per run of elementwise products.
     """
@@ -153,10 +153,11 @@ def _run_sums(fold: Fold, XT: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarra
     q = fold.F.shape[1]
     xs = np.sqrt(np.einsum("in,in->i", XT, XT))
     xs[xs == 0] = 1.0
-    Xs = XT / xs[:, None]
+    Xs = np.divide(XT, xs[:, None], out=XT)  # in place: the batch's own copy (grid_scores)
     XF = np.zeros((fold.k + 1, n_set * p, q))
-    # per regressor and contiguous run of a block: whether it is non-zero there
-    live = np.add.reduceat(Xs != 0.0, fold.starts, axis=-1)
+    # per regressor and contiguous run of a block: whether it is non-zero there (logical_or: a bool sum's
+    # reduceat casts every element)
+    live = np.logical_or.reduceat(Xs != 0.0, fold.starts, axis=-1)
     for i, (a, b, j, nz, Fb) in enumerate(fold.runs):  # columns (fixed or the settings') zero in a run add nothing
         Xb = Xs[:, a:b]
         moving = np.flatnonzero(live[:, i])
@@ -293,7 +294,12 @@ def grid_scores(fold: Fold, designs: Sequence[np.ndarray], *, signs: Sequence[np
         per = max(1, BATCH_COLUMNS // p)
         for start in range(0, len(members), per):
             idx = members[start: start + per]
-            XF, XX, Xr, xs = _run_sums(fold, np.concatenate([designs[g].T for g in idx], axis=0), p)
+            # a regressor to a row, each row contiguous whatever the designs' layout (concatenating the
+            # transposes of C-ordered (n, p) designs gives column-major rows: strided sums, 1.2x the time)
+            XT = np.empty((len(idx) * p, len(fold.r)))
+            for i, g in enumerate(idx):
+                XT[i * p: (i + 1) * p] = designs[g].T
+            XF, XX, Xr, xs = _run_sums(fold, XT, p)
             bF, bX, bF1, bX1 = fs.solve(XF, XX, Xr)
             gf = np.swapaxes(bX, 0, 1) / xs[:, None, :]  # (G, K, p)
             ga = bX1 / xs
