@@ -147,8 +147,8 @@ def test_paper_method_from_the_cli(workdir, capsys):
      "cncgw: error: lathe.model.toml: model file not found; create it with `cncgw identify --profile lathe.toml "
      "EXPERIMENTS... -o lathe.model.toml`"),
     (["estimate", "--profile", "lathe.toml", "--model", "lathe.toml", "val.csv"], 5,
-     'cncgw: error: lathe.toml:2: machine: unknown key (expected one of: coverage, envelope, format, '
-     'gain_correlation, info, model, path, reference, units)'),
+     "cncgw: error: lathe.toml: a machine profile (it has [machine]), not a model file: expected a model written by "
+     "cncgw identify; pass the profile with --profile (its [model] file is the default model)"),
     (["identify", "--profile", "lathe.toml", "exp1.csv", "--period-s", "-3"], 2,
      "argument --period-s: expected a number > 0, got '-3'"),
     (["identify", "--profile", "lathe.toml", "exp1.csv", "--structures", "third_order"], 2,
