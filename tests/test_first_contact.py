@@ -414,3 +414,16 @@ def test_a_profile_given_as_the_model_is_one_line(random_spindle, capsys):
     assert capsys.readouterr().err.splitlines() == [
         f"cncgw: error: {profile}: a machine profile (it has [machine]), not a model file: expected a model written "
         "by cncgw identify; pass the profile with --profile (its [model] file is the default model)"]
+
+
+def test_profile_check_checks_the_model_file_it_names_against_the_profile(tmp_path, capsys):
+    from gateway import BUNDLED
+
+    # a unit typed otherwise than the model was identified with: profile check said OK, estimate and run exit 5
+    profile = _profile(tmp_path, 'unit = "rpm"', 'unit = "rad/s"')
+    assert main(["profile", "check", str(profile)]) == 5
+    captured = capsys.readouterr()
+    assert captured.out.startswith(f"profile   {profile}: OK")
+    assert captured.err == (f'cncgw: error: {BUNDLED / "sim-vmc.model.toml"}: factor "spindle_speed" is in rpm but '
+                            f"profile {profile} says rad/s\n")
+    assert main(["profile", "check", str(_profile(tmp_path, 'unit = "rpm"', 'unit = "rpm"'))]) == 0

@@ -32,8 +32,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run_check(args: argparse.Namespace) -> int:
-    """Check one profile and print its summary."""
-    print(format_summary(load_profile(args.profile)))
+    """Check one profile and print its summary; then its model file, if there is one, against it."""
+    profile = load_profile(args.profile)
+    print(format_summary(profile))
+    if profile.model_path.exists():
+        # a unit typed otherwise than the model was identified with (rad/s for rpm) passed here and failed at
+        # `estimate` and `run` (exit 5): say it now, with the same message
+        from gateway.commands._common import load_model_for
+
+        load_model_for(profile, None)
     return 0
 
 
