@@ -38,7 +38,7 @@ The filter's state is a pure function of the window history and the probes: repl
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -96,6 +96,19 @@ class DriftSettings:
     #: (sigma = 0.5: a tenfold sd is a 2 sigma event). Where the probes cannot resolve the gains (an axis the
     #: model already gets within the probes' noise) the bank's weights stay near this prior and the band is its
     gain_scale_prior_decades: float | None = None
+    #: the bank's prior weight, per axis, on the disturbance scales the identification's own residual supports
+    #: (:func:`identification_scale_likelihood`); the rest is even over ``scales``. 0: even (no such evidence
+    #: used). The residual of identification (in the hall, every effect the model knows) is white at the sensor's
+    #: noise on an axis whose model leaves no drift: a disturbance of a scale that would have made it
+    #: autocorrelated did not act there. Production may bring what the hall did not (a room cycle, a slow
+    #: part), so that evidence gets this weight and the even prior the rest: a prior over "nothing new on this
+    #: axis" and "something new, of any scale". Where the probes resolve the disturbance the prior hardly matters;
+    #: where they cannot (an axis the model already gets within the probes' noise) the band is this prior's
+    hall_prior_weight: float = 0.0
+    #: True: that evidence only shares out the prior weight of the scales the probes cannot resolve (a member
+    #: whose drift over the time since the axis's last probe is below the probe's sd), so the scales they can
+    #: resolve keep their even prior (a new effect is followed as fast as without it); the weights start even
+    hall_prior_below_resolution: bool = False
 
     def __post_init__(self) -> None:
         for name in ("rate_sd_um_per_h", "rate_tau_h", "offset_tau_h", "weight_memory_h", "gain_memory_h",
@@ -117,6 +130,8 @@ class DriftSettings:
         g = self.gain_scale_prior_decades
         if g is not None and not (math.isfinite(g) and g > 0):
             raise ValueError(f"DriftSettings.gain_scale_prior_decades must be None or finite and > 0. Got {g!r}")
+        if not (0.0 <= self.hall_prior_weight < 1.0):
+            raise ValueError(f"DriftSettings.hall_prior_weight must be in [0, 1). Got {self.hall_prior_weight!r}")
         if self.reanchor_after < 2:
             raise ValueError(f"DriftSettings.reanchor_after must be >= 2. Got {self.reanchor_after!r}")
 
@@ -220,6 +235,69 @@ def _drift_model(s: DriftSettings, dt_s: float) -> tuple[np.ndarray, np.ndarray,
     return Phi, (Q + Q.T) / 2.0, (P_inf + P_inf.T) / 2.0
 
 
+def detrended_drift_variance(s: DriftSettings, duration_s: float, dt_s: float) -> float:
+    """The disturbance's variance at scale 1 about its own mean over one run of ``duration_s``, from 0 at rest.
+
+    What a drift of the bank's kind leaves in an identification residual: each experiment's offset is fitted
+    (its mean is absorbed), the rest would stay (the model's modes may absorb some of it too: this is the most
+    it could leave, so the evidence it gives is on the strict side of that absorption). Averaged over the run's
+    windows; the model's activity, which raises the disturbance's noise, is left out (a smaller variance: the
+    evidence weaker, not stronger).
+    """
+    phi, q, _ = _drift_model(s, dt_s)
+    n = max(int(round(duration_s / dt_s)), 2)
+    P = np.empty((n, 2, 2))
+    p = np.zeros((2, 2))
+    for i in range(n):
+        p = phi @ p @ phi.T + q
+        P[i] = p
+    pw = np.empty((n, 2))  # first row of Phi^k
+    m = np.eye(2)
+    for k in range(n):
+        pw[k] = m[0]
+        m = phi @ m
+    M = pw @ P[:, :, 0].T  # M[k, i] = Cov(d_{i+k}, d_i)
+    k, i = np.indices((n, n))
+    total = M[0].sum() + 2.0 * M[(k >= 1) & (i < n - k)].sum()  # 1' C 1
+    return float((M[0].sum() - total / n) / n)
+
+
+def identification_scale_likelihood(model: ThermalModel, s: DriftSettings, scales: np.ndarray) -> np.ndarray | None:
+    """Per axis, how well each disturbance scale agrees with the identification's residual (axes, scales).
+
+    The model file's ``[info.axis_<a>]`` holds the residual's RMS, its lag-1 autocorrelation (one window) and
+    its effective sample count; ``[info]`` the longest experiment. A disturbance at scale ``k`` acting there
+    would have added a slow part of variance ``v = k x`` :func:`detrended_drift_variance` to a white residual
+    of the sensor's variance ``sigma^2``, and so a lag-1 autocorrelation ``v / (v + sigma^2)``; the measured
+    one estimates that with a standard error ``1 / sqrt(n)``. The likelihood is that normal density,
+    normalised over ``scales`` per axis. None where the file lacks these figures (a hand-written model), per
+    axis a row of NaN where its figures are missing or out of range.
+    """
+    info = model.info
+    duration = info.get("longest_experiment_s")
+    if not isinstance(duration, int | float) or not (math.isfinite(duration) and duration > 0):
+        return None
+    dt = info.get("window_s", 60.0)
+    if not isinstance(dt, int | float) or not (math.isfinite(dt) and 0 < dt <= duration):
+        return None
+    v1 = detrended_drift_variance(s, float(duration), float(dt))
+    out = np.full((len(model.axes), len(scales)), np.nan)
+    for i, a in enumerate(model.axes):
+        ax = info.get(f"axis_{a}")
+        if not isinstance(ax, Mapping):
+            continue
+        rms, rho, n = (ax.get(k) for k in ("rms_um", "residual_lag1_autocorrelation", "effective_samples"))
+        if not all(isinstance(x, int | float) and math.isfinite(x) for x in (rms, rho, n)) or rms <= 0 or n < 2:
+            continue
+        rho = min(max(float(rho), 0.0), 0.99)
+        sigma2 = rms * rms * (1.0 - rho)  # the white part
+        v = scales * v1
+        loglik = -0.5 * float(n) * (rho - v / (v + sigma2)) ** 2
+        lik = np.exp(loglik - loglik.max())
+        out[i] = lik / lik.sum()
+    return out
+
+
 @dataclass(frozen=True, kw_only=True, slots=True)
 class AxisEstimate:
     """One axis after a window: the updated estimate and its standard uncertainty (um)."""
@@ -306,8 +384,27 @@ class AdaptiveEstimator:
             x = 0.5 * np.log10(g_scales) / s.gain_scale_prior_decades
             p = p * np.exp(-0.5 * x * x)
             p = p / p.sum()
+        p = np.tile(p, (n_a, 1))
+        self.levels = np.array(sorted(set(s.scales)))
+        self.level_of = np.searchsorted(self.levels, scales)
+        self.base_prior = p.copy()
+        self.hall_lik = None
+        if s.hall_prior_weight > 0:
+            levels = self.levels
+            lik = identification_scale_likelihood(model, s, levels)
+            self.hall_lik = lik
+        if s.hall_prior_weight > 0 and not s.hall_prior_below_resolution:
+            # per axis: hall_prior_weight on the scales the identification's residual supports, the rest even
+            levels = self.levels
+            for i in range(n_a):
+                if lik is None or not np.all(np.isfinite(lik[i])):
+                    continue
+                on_scale = (s.hall_prior_weight * lik[i] + (1.0 - s.hall_prior_weight) / levels.size) * levels.size
+                p[i] = p[i] * on_scale[np.searchsorted(levels, scales)]
+                p[i] = p[i] / p[i].sum()
+        #: per axis and member
         self.log_prior = np.log(p)
-        self.logw = np.tile(self.log_prior, (n_a, 1))
+        self.logw = self.log_prior.copy()
         self.c = np.zeros((n_a, n_in))
         self.c_prev = np.zeros((n_a, n_in))
         self.time_s: float | None = None
@@ -342,6 +439,8 @@ class AdaptiveEstimator:
             if np.any(b > 0):
                 self._extrapolating(c, np.minimum(self.extrapolation[:, None] * b[None, :], 1.0))
         self.c_prev, self.c = self.c, c
+        if self.time_s is None:
+            self.start_s = float(end_s) - self.window_s
         self.prev_time_s, self.time_s = self.time_s, float(end_s)
         self.steps += 1
 
@@ -484,7 +583,24 @@ class AdaptiveEstimator:
     def _reanchor(self, i: int) -> None:
         """Axis ``i``: every member's covariance at least its prior, the bank's weights back to their prior."""
         self.P[i] = self.P[i] + self.P_reanchor[i]  # a sum stays a covariance; an element-wise max need not
-        self.logw[i] = self.log_prior
+        self.logw[i] = self.log_prior[i]
+
+    def _has_hall(self, i: int) -> bool:
+        return self.hall_lik is not None and bool(np.all(np.isfinite(self.hall_lik[i])))
+
+    def _resolution_prior(self, i: int, interval_s: float, R: float) -> np.ndarray:
+        """Axis ``i``'s log prior: the identification's evidence shares out the unresolved scales' even weight."""
+        s = self.settings
+        _, q, _ = _drift_model(s, max(interval_s, self.window_s))
+        below = self.levels * q[0, 0] < R
+        f = np.ones(self.levels.size)
+        if below.any():
+            lik = np.where(below, self.hall_lik[i], 0.0)
+            lik = lik / lik.sum() if lik.sum() > 0 else below / below.sum()
+            g = below.sum()
+            f[below] = (s.hall_prior_weight * lik[below] + (1.0 - s.hall_prior_weight) / g) * g
+        p = self.base_prior[i] * f[self.level_of]
+        return np.log(p / p.sum())
 
     def _update(self, i: int, c: np.ndarray, z: float, R: float, t_s: float, mean: np.ndarray,
                 var: np.ndarray) -> None:
@@ -502,10 +618,17 @@ class AdaptiveEstimator:
         self.P[i] = (P + P.transpose(0, 2, 1)) / 2.0
         mem = self.memory[i]
         s = self.settings
+        if mem.last_probe_s is None and s.hall_prior_below_resolution and self._has_hall(i):
+            # the first probe: what the probes could resolve since the start decides the prior, and the weights
+            # (nothing learned yet) start there
+            self.log_prior[i] = self._resolution_prior(i, t_s - self.start_s, R)
+            self.logw[i] = self.log_prior[i].copy()
         if mem.last_probe_s is not None:
             alpha = math.exp(-max(t_s - mem.last_probe_s, 0.0) / (s.weight_memory_h * 3600.0))
             # forget toward the prior (for an even prior the same as toward even weights)
-            self.logw[i] = alpha * self.logw[i] + (1.0 - alpha) * self.log_prior
+            if s.hall_prior_below_resolution and self._has_hall(i):
+                self.log_prior[i] = self._resolution_prior(i, t_s - mem.last_probe_s, R)
+            self.logw[i] = alpha * self.logw[i] + (1.0 - alpha) * self.log_prior[i]
         mem.last_probe_s = t_s
         self.logw[i] += -0.5 * (np.log(2 * math.pi * S) + nu * nu / S)
         w = np.exp(self.logw[i] - self.logw[i].max())
