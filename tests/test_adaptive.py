@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import importlib.util
 import math
 import sys
@@ -13,7 +14,7 @@ import pytest
 from tests_paths import PROFILES, ROOT
 
 from gateway.adaptive import AdaptiveEstimator, DriftSettings, Probe, replay
-from gateway.adaptive.filter import Z95
+from gateway.adaptive.filter import Z95, detrended_drift_variance, identification_scale_likelihood
 from gateway.adaptive.probes import SEQ_MODULUS
 from gateway.model import FirstOrder, PathTF, ThermalModel, load_model
 
@@ -277,6 +278,8 @@ def test_settings_are_checked():
         DriftSettings(extrapolation_gain_sds=(0.0, -0.1))
     with pytest.raises(ValueError, match=r"gain_scale_prior_decades must be None or finite and > 0. Got 0.0"):
         DriftSettings(gain_scale_prior_decades=0.0)
+    with pytest.raises(ValueError, match=r"residual_prior_weight must be in \[0, 1\). Got 1.0"):
+        DriftSettings(residual_prior_weight=1.0)
 
 
 def test_gain_scale_prior_weighs_the_identifications_covariance_most():
@@ -294,6 +297,61 @@ def test_gain_scale_prior_weighs_the_identifications_covariance_most():
     np.testing.assert_allclose(w_prior, want / want.sum(), rtol=1e-9)
     assert w_prior[g.index(1.0)] > 0.4
     assert w_prior[g.index(100.0)] < 0.06  # a tenfold sd is a 2 sigma event
+
+
+def with_residual(model: ThermalModel, rho: float = 0.0, **axis) -> ThermalModel:
+    """``model`` with identification's residual figures for z: 0.1 um RMS, lag-1 autocorrelation ``rho``."""
+    figures = {"rms_um": 0.1, "residual_lag1_autocorrelation": rho, "effective_samples": 6000.0, **axis}
+    return dataclasses.replace(model, info={"longest_experiment_s": 43200.0, "window_s": DT, "axis_z": figures})
+
+
+def test_identification_residual_weighs_the_disturbance_scales():
+    """A white residual rules out the scales that would have left it autocorrelated; a coloured one finds its own."""
+    s = DriftSettings()
+    levels = np.array(sorted(set(s.scales)))
+    v = levels * detrended_drift_variance(s, 43200.0, DT)
+    for rho in (0.0, 0.1):
+        lik = identification_scale_likelihood(with_residual(small_model(), rho), s, levels)[0]
+        assert lik.sum() == pytest.approx(1.0)
+        implied = v / (v + 0.01 * (1.0 - rho))  # the lag-1 autocorrelation each scale would have left
+        assert lik[np.abs(implied - rho) > 0.1].sum() < 1e-6  # 6000 samples: standard error 0.013
+        assert int(np.argmax(lik)) == int(np.argmin(np.abs(implied - rho)))
+    assert identification_scale_likelihood(small_model(), s, levels) is None  # no figures: not used
+    assert np.isnan(identification_scale_likelihood(with_residual(small_model(), rms_um=-1.0), s, levels)).all()
+
+
+def _replay_48h(model: ThermalModel, extra, every_h: float, settings: DriftSettings | None):
+    du = work_day(48)
+    C = model.discretize(DT).contributions(du)
+    t = DT * np.arange(1, du.shape[1] + 1)
+    truth = C.sum(axis=1)[0] + extra(t / 3600.0)
+    rng = np.random.default_rng(3)
+    step = round(every_h * H)
+    probes = [Probe(seq=q + 1, time_s=float(t[k]), values_um={"z": float(truth[k] + 0.3 * rng.standard_normal())},
+                    sd_um=0.3) for q, k in enumerate(range(step - 1, len(t), step))]
+    rp = replay(model, C, t, probes, window_s=DT, settings=settings)
+    err = np.abs(truth - rp.estimate_um[0])[step:]
+    half = Z95 * rp.sd_um[0, step:]
+    return float(np.median(half[24 * H:])), float(np.mean(err <= half)), float(np.sqrt(np.mean(err ** 2))), rp
+
+
+@pytest.mark.parametrize("every_h", [1.0, 4.0])
+def test_the_residuals_evidence_narrows_only_what_the_probes_cannot_resolve(every_h):
+    """A white identification residual narrows the band of a right model (the probes cannot tell its drift from
+    none) and leaves a drift the probes resolve as it was: learned as fast, nothing refused."""
+    evidence = DriftSettings(residual_prior_weight=0.5)
+    right = lambda t_h: 0.0 * t_h  # noqa: E731
+    half0, _, rms0, _ = _replay_48h(small_model(), right, every_h, None)
+    half1, cover1, rms1, _ = _replay_48h(with_residual(small_model()), right, every_h, evidence)
+    assert half1 < 0.92 * half0
+    assert cover1 >= 0.95
+    assert rms1 <= rms0
+    half0, cover0, rms0, rp0 = _replay_48h(small_model(), drift, every_h, None)
+    half1, cover1, rms1, rp1 = _replay_48h(with_residual(small_model()), drift, every_h, evidence)
+    assert rms1 == pytest.approx(rms0, rel=0.05)
+    assert half1 == pytest.approx(half0, rel=0.1)
+    assert cover1 >= cover0 - 0.01
+    assert all(d.accepted for d in (*rp0.decisions, *rp1.decisions))
 
 
 def test_live_contributions_equal_batch_and_sum_to_the_estimate():

@@ -23,9 +23,11 @@ State space, per axis (the axes are filtered independently: a probe's axes are m
 How strong the disturbance is differs from machine to machine and week to week, so the filter is a bank
 of ``len(scales)`` filters whose disturbance variances are the base times each scale; each probe weighs
 them by the likelihood of its innovation, and the weights forget with ``weight_memory_h`` (old conditions
-fade). The estimate is the weighted mean, its variance the weighted variances plus the spread of the
-members' means. That variance is the band: parameter uncertainty from identification propagated through
-the model (``c_p^2 var(g_p)``) plus the disturbance's.
+fade) toward their prior: even over the scales, or (``residual_prior_weight``) with the scales the probes
+cannot resolve weighed by the identification's own residual (:func:`identification_scale_likelihood`).
+The estimate is the weighted mean, its variance the weighted variances plus the spread of the members' means.
+That variance is the band: parameter uncertainty from identification propagated through the model
+(``c_p^2 var(g_p)``) plus the disturbance's.
 
 Bounded: a probe is applied only when it passes :func:`gateway.adaptive.probes.probe_problems`, the
 sequence check and the innovation test (``|value - estimate| <= gate_sigma x sd``, the probe's own
@@ -96,19 +98,19 @@ class DriftSettings:
     #: (sigma = 0.5: a tenfold sd is a 2 sigma event). Where the probes cannot resolve the gains (an axis the
     #: model already gets within the probes' noise) the bank's weights stay near this prior and the band is its
     gain_scale_prior_decades: float | None = None
-    #: the bank's prior weight, per axis, on the disturbance scales the identification's own residual supports
-    #: (:func:`identification_scale_likelihood`); the rest is even over ``scales``. 0: even (no such evidence
-    #: used). The residual of identification (in the hall, every effect the model knows) is white at the sensor's
-    #: noise on an axis whose model leaves no drift: a disturbance of a scale that would have made it
-    #: autocorrelated did not act there. Production may bring what the hall did not (a room cycle, a slow
-    #: part), so that evidence gets this weight and the even prior the rest: a prior over "nothing new on this
-    #: axis" and "something new, of any scale". Where the probes resolve the disturbance the prior hardly matters;
-    #: where they cannot (an axis the model already gets within the probes' noise) the band is this prior's
-    hall_prior_weight: float = 0.0
-    #: True: that evidence only shares out the prior weight of the scales the probes cannot resolve (a member
-    #: whose drift over the time since the axis's last probe is below the probe's sd), so the scales they can
-    #: resolve keep their even prior (a new effect is followed as fast as without it); the weights start even
-    hall_prior_below_resolution: bool = False
+    #: the prior over the disturbance scales the probes cannot resolve, per axis: this weight on those the
+    #: identification's own residual supports (:func:`identification_scale_likelihood`), the rest even; the
+    #: scales the probes resolve keep their even share. Why: identification fitted the model in the hall with
+    #: every effect it knows, and its residual there is white at the sensor's noise on an axis whose model leaves
+    #: no drift: a disturbance that would have made it autocorrelated did not act. Production may bring what the
+    #: hall did not (a room cycle, a slow part), so that evidence weighs only what the probes cannot tell apart
+    #: (a member whose drift since the axis's last probe, at rest, is below the probe's sd: such members predict
+    #: the same innovations, and without other evidence the band would be the even prior's, wide where the
+    #: model is already within the probes' noise); what the probes resolve keeps its even prior, so a new effect
+    #: is followed as fast as without it. 0.5: as likely that production adds nothing the probes cannot see on
+    #: this axis as that it adds a drift of any such scale. 0 (or a model file without the residual's figures,
+    #: e.g. written by hand): the even prior
+    residual_prior_weight: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("rate_sd_um_per_h", "rate_tau_h", "offset_tau_h", "weight_memory_h", "gain_memory_h",
@@ -130,8 +132,9 @@ class DriftSettings:
         g = self.gain_scale_prior_decades
         if g is not None and not (math.isfinite(g) and g > 0):
             raise ValueError(f"DriftSettings.gain_scale_prior_decades must be None or finite and > 0. Got {g!r}")
-        if not (0.0 <= self.hall_prior_weight < 1.0):
-            raise ValueError(f"DriftSettings.hall_prior_weight must be in [0, 1). Got {self.hall_prior_weight!r}")
+        if not (0.0 <= self.residual_prior_weight < 1.0):
+            raise ValueError(
+                f"DriftSettings.residual_prior_weight must be in [0, 1). Got {self.residual_prior_weight!r}")
         if self.reanchor_after < 2:
             raise ValueError(f"DriftSettings.reanchor_after must be >= 2. Got {self.reanchor_after!r}")
 
@@ -245,7 +248,7 @@ def detrended_drift_variance(s: DriftSettings, duration_s: float, dt_s: float) -
     evidence weaker, not stronger).
     """
     phi, q, _ = _drift_model(s, dt_s)
-    n = max(int(round(duration_s / dt_s)), 2)
+    n = max(round(duration_s / dt_s), 2)
     P = np.empty((n, 2, 2))
     p = np.zeros((2, 2))
     for i in range(n):
@@ -388,20 +391,9 @@ class AdaptiveEstimator:
         self.levels = np.array(sorted(set(s.scales)))
         self.level_of = np.searchsorted(self.levels, scales)
         self.base_prior = p.copy()
-        self.hall_lik = None
-        if s.hall_prior_weight > 0:
-            levels = self.levels
-            lik = identification_scale_likelihood(model, s, levels)
-            self.hall_lik = lik
-        if s.hall_prior_weight > 0 and not s.hall_prior_below_resolution:
-            # per axis: hall_prior_weight on the scales the identification's residual supports, the rest even
-            levels = self.levels
-            for i in range(n_a):
-                if lik is None or not np.all(np.isfinite(lik[i])):
-                    continue
-                on_scale = (s.hall_prior_weight * lik[i] + (1.0 - s.hall_prior_weight) / levels.size) * levels.size
-                p[i] = p[i] * on_scale[np.searchsorted(levels, scales)]
-                p[i] = p[i] / p[i].sum()
+        #: per axis, the identification's residual's likelihood of each disturbance scale (None: not used)
+        self.residual_lik = (identification_scale_likelihood(model, s, self.levels)
+                             if s.residual_prior_weight > 0 else None)
         #: per axis and member
         self.log_prior = np.log(p)
         self.logw = self.log_prior.copy()
@@ -410,6 +402,7 @@ class AdaptiveEstimator:
         self.time_s: float | None = None
         self.prev_time_s: float | None = None
         self.steps = 0
+        self.start_s: float | None = None  # the start of the first window
         self.seq = SequenceCheck()
         self.memory = [_AxisMemory() for _ in self.axes]
         self.decisions: list[ProbeDecision] = []
@@ -585,8 +578,8 @@ class AdaptiveEstimator:
         self.P[i] = self.P[i] + self.P_reanchor[i]  # a sum stays a covariance; an element-wise max need not
         self.logw[i] = self.log_prior[i]
 
-    def _has_hall(self, i: int) -> bool:
-        return self.hall_lik is not None and bool(np.all(np.isfinite(self.hall_lik[i])))
+    def _has_residual(self, i: int) -> bool:
+        return self.residual_lik is not None and bool(np.all(np.isfinite(self.residual_lik[i])))
 
     def _resolution_prior(self, i: int, interval_s: float, R: float) -> np.ndarray:
         """Axis ``i``'s log prior: the identification's evidence shares out the unresolved scales' even weight."""
@@ -595,10 +588,10 @@ class AdaptiveEstimator:
         below = self.levels * q[0, 0] < R
         f = np.ones(self.levels.size)
         if below.any():
-            lik = np.where(below, self.hall_lik[i], 0.0)
+            lik = np.where(below, self.residual_lik[i], 0.0)
             lik = lik / lik.sum() if lik.sum() > 0 else below / below.sum()
             g = below.sum()
-            f[below] = (s.hall_prior_weight * lik[below] + (1.0 - s.hall_prior_weight) / g) * g
+            f[below] = (s.residual_prior_weight * lik[below] + (1.0 - s.residual_prior_weight) / g) * g
         p = self.base_prior[i] * f[self.level_of]
         return np.log(p / p.sum())
 
@@ -618,15 +611,15 @@ class AdaptiveEstimator:
         self.P[i] = (P + P.transpose(0, 2, 1)) / 2.0
         mem = self.memory[i]
         s = self.settings
-        if mem.last_probe_s is None and s.hall_prior_below_resolution and self._has_hall(i):
+        if mem.last_probe_s is None and self._has_residual(i):
             # the first probe: what the probes could resolve since the start decides the prior, and the weights
             # (nothing learned yet) start there
-            self.log_prior[i] = self._resolution_prior(i, t_s - self.start_s, R)
+            self.log_prior[i] = self._resolution_prior(i, t_s - (self.start_s or 0.0), R)
             self.logw[i] = self.log_prior[i].copy()
         if mem.last_probe_s is not None:
             alpha = math.exp(-max(t_s - mem.last_probe_s, 0.0) / (s.weight_memory_h * 3600.0))
             # forget toward the prior (for an even prior the same as toward even weights)
-            if s.hall_prior_below_resolution and self._has_hall(i):
+            if self._has_residual(i):
                 self.log_prior[i] = self._resolution_prior(i, t_s - mem.last_probe_s, R)
             self.logw[i] = alpha * self.logw[i] + (1.0 - alpha) * self.log_prior[i]
         mem.last_probe_s = t_s
