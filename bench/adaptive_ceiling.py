@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/adaptive_ceiling.py [--draws 3] [--variants 0,1,2] [--seeds 1,2] [--days 4]
                                                [--intervals 1,2,4] [--scale-range 3.05e-5,8] [--set NAME=VALUE]
+                                               [--residual-truth P]
 
 ``bench/adaptive.py`` counts the case-axes whose 95 % band covers the truth 90-98 % of a 4-day run. That count
 mixes two things: how wrong the filter's model of the disturbance is (the room's smooth cycle is no
@@ -18,7 +19,11 @@ the schedule does not depend on the effect) and per draw, each axis gets:
   at a scale log-uniform in ``--scale-range`` (between the bank's smallest and largest scales, one grid
   step inside), its noise scaled by the model's motion exactly as the filter assumes;
 
-the truth is the model's contributions with those gains plus the disturbance. Probes (0.3 um, every 1, 2, 4 h)
+the truth is the model's contributions with those gains plus the disturbance. With ``--residual-truth P`` an
+axis's scale is, with probability P, drawn instead from what the identification's residual supports
+(:func:`gateway.adaptive.filter.identification_scale_likelihood`): the truth of
+``DriftSettings.residual_prior_weight = P``'s prior, so that setting can be checked against its own world as
+well as against the log-uniform one. Probes (0.3 um, every 1, 2, 4 h)
 and the replay are those of ``bench/adaptive.py``. Printed: the case-axes in 90-98 %, too wide and too narrow
 per interval and axis, pooled per axis, and the same by how far the disturbance moves over one probe interval
 against the probe's own noise (what the probes can resolve).
@@ -58,7 +63,12 @@ from adaptive import (  # noqa: E402
 )
 
 from gateway.adaptive import DriftSettings, replay  # noqa: E402
-from gateway.adaptive.filter import _drift_model, gain_correlation, gain_sd  # noqa: E402
+from gateway.adaptive.filter import (  # noqa: E402
+    _drift_model,
+    gain_correlation,
+    gain_sd,
+    identification_scale_likelihood,
+)
 
 
 def draw_truth(contributions: np.ndarray, settings: DriftSettings, gsd: np.ndarray, gcorr: np.ndarray,
@@ -101,10 +111,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--probe-sd-um", type=float, default=0.3)
     ap.add_argument("--scale-range", type=_floats, default=[8.0 ** -5, 8.0],
                     help="the disturbance's variance scale, log-uniform between these two")
+    ap.add_argument("--residual-truth", type=float, default=0.0, metavar="P",
+                    help="per axis with probability P the disturbance's scale is drawn from the identification "
+                         "residual's likelihood instead (production adds nothing the hall did not have: "
+                         "DriftSettings.residual_prior_weight's hypothesis), a grid scale times up to half a grid "
+                         "step either way; default 0")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                     help="set a DriftSettings field, as bench/adaptive.py --set")
     ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "cncgw-bench" / "adaptive")
     args = ap.parse_args(argv)
+    if not 0.0 <= args.residual_truth <= 1.0:
+        ap.error(f"--residual-truth: expected a probability in [0, 1], got {args.residual_truth}")
     if len(args.scale_range) != 2 or not 0 < args.scale_range[0] < args.scale_range[1]:
         ap.error(f"--scale-range: expected two values 0 < lo < hi, got {args.scale_range}")
     try:
@@ -116,6 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     for v in args.variants:
         model = identified_model(v, args.cache)
         gsd, gcorr = gain_sd(model, settings.gain_sd_default), gain_correlation(model)
+        levels = np.array(sorted(set(settings.scales)))
+        lik = identification_scale_likelihood(model, settings, levels)
         for seed in args.seeds:
             run = production_run("room", v, seed, args.days, args.cache)
             t = run["time_s"]
@@ -125,6 +144,11 @@ def main(argv: list[str] | None = None) -> int:
                 rng = np.random.default_rng([seed, v, d, 77])
                 lo, hi = np.log(args.scale_range)
                 scales = np.exp(rng.uniform(lo, hi, len(AXES)))
+                if args.residual_truth > 0 and lik is not None:
+                    step = np.log(levels[1] / levels[0]) if levels.size > 1 else 0.0
+                    for i in range(len(AXES)):
+                        if rng.random() < args.residual_truth and np.all(np.isfinite(lik[i])):
+                            scales[i] = rng.choice(levels, p=lik[i]) * np.exp(rng.uniform(-step / 2, step / 2))
                 truth = draw_truth(contributions, settings, gsd, gcorr, scales, rng)
                 for ih in args.intervals:
                     probes = probes_for(truth, t, probe_schedule(t, ih), args.probe_sd_um, 1000 * seed + v + 7 * d)
