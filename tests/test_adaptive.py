@@ -339,15 +339,17 @@ def _replay_48h(model: ThermalModel, extra, every_h: float, settings: DriftSetti
 def test_the_residuals_evidence_narrows_only_what_the_probes_cannot_resolve(every_h):
     """A white identification residual narrows the band of a right model (the probes cannot tell its drift from
     none) and leaves a drift the probes resolve as it was: learned as fast, nothing refused."""
-    evidence = DriftSettings(residual_prior_weight=0.5)
+    model, even = with_residual(small_model()), DriftSettings(residual_prior_weight=0.0)
     right = lambda t_h: 0.0 * t_h  # noqa: E731
-    half0, _, rms0, _ = _replay_48h(small_model(), right, every_h, None)
-    half1, cover1, rms1, _ = _replay_48h(with_residual(small_model()), right, every_h, evidence)
+    half0, _, rms0, _ = _replay_48h(model, right, every_h, even)
+    half1, cover1, rms1, _ = _replay_48h(model, right, every_h, None)  # the default: 0.5
     assert half1 < 0.92 * half0
     assert cover1 >= 0.95
     assert rms1 <= rms0
-    half0, cover0, rms0, rp0 = _replay_48h(small_model(), drift, every_h, None)
-    half1, cover1, rms1, rp1 = _replay_48h(with_residual(small_model()), drift, every_h, evidence)
+    # a model file without the residual's figures (written by hand): the even prior
+    assert _replay_48h(small_model(), right, every_h, None)[0] == pytest.approx(half0, rel=1e-9)
+    half0, cover0, rms0, rp0 = _replay_48h(model, drift, every_h, even)
+    half1, cover1, rms1, rp1 = _replay_48h(model, drift, every_h, None)
     assert rms1 == pytest.approx(rms0, rel=0.05)
     assert half1 == pytest.approx(half0, rel=0.1)
     assert cover1 >= cover0 - 0.01
