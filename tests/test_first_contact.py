@@ -427,3 +427,18 @@ def test_profile_check_checks_the_model_file_it_names_against_the_profile(tmp_pa
     assert captured.err == (f'cncgw: error: {BUNDLED / "sim-vmc.model.toml"}: factor "spindle_speed" is in rpm but '
                             f"profile {profile} says rad/s\n")
     assert main(["profile", "check", str(_profile(tmp_path, 'unit = "rpm"', 'unit = "rpm"'))]) == 0
+
+
+@pytest.mark.parametrize(("old", "new", "said"), [
+    ("fast_period_s = 0.002", "fast_period_s = 2", "sampling.fast_period_s = 2 s: 30 samples a window; the fast "
+                                                   "period is in seconds: if you meant 2 ms, write 0.002"),
+    ("window_s = 60.0", "window_s = 60000", "sampling.window_s = 60000 s (16.7 h): a window is normally a minute "
+                                            "(60), shorter than the fastest thermal time constants; if you meant "
+                                            "60000 ms, write 60"),
+])
+def test_profile_check_says_when_a_period_looks_like_milliseconds(old, new, said, tmp_path, capsys):
+    profile = _profile(tmp_path, old, new)
+    assert main(["profile", "check", str(profile)]) == 0  # legal (a slow OPC UA poll is real): said, not refused
+    assert capsys.readouterr().err == f"cncgw: warning: {profile}: {said}\n"
+    assert main(["profile", "check", str(_profile(tmp_path, old, old))]) == 0
+    assert capsys.readouterr().err == ""

@@ -7,10 +7,11 @@ from __future__ import annotations
 
 import argparse
 import re
+import sys
 from pathlib import Path
 
 from gateway.errors import GatewayError
-from gateway.profile import format_summary, load_profile
+from gateway.profile import Profile, format_summary, load_profile
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -35,6 +36,8 @@ def run_check(args: argparse.Namespace) -> int:
     """Check one profile and print its summary; then its model file, if there is one, against it."""
     profile = load_profile(args.profile)
     print(format_summary(profile))
+    for note in _unit_slips(profile):
+        print(f"cncgw: warning: {profile.path}: {note}", file=sys.stderr)
     if profile.model_path.exists():
         # a unit typed otherwise than the model was identified with (rad/s for rpm) passed here and failed at
         # `estimate` and `run` (exit 5): say it now, with the same message
@@ -42,6 +45,19 @@ def run_check(args: argparse.Namespace) -> int:
 
         load_model_for(profile, None)
     return 0
+
+
+def _unit_slips(profile: Profile) -> list[str]:
+    """Legal values that look like milliseconds typed for seconds: said, not refused (a slow OPC UA poll is real)."""
+    s, out = profile.sampling, []
+    if s.fast_period_s >= 1.0:
+        out.append(f"sampling.fast_period_s = {s.fast_period_s:g} s: {s.samples_per_window} samples a window; the fast "
+                   f"period is in seconds: if you meant {s.fast_period_s:g} ms, write {s.fast_period_s / 1000:g}")
+    if s.window_s >= 3600.0:
+        out.append(f"sampling.window_s = {s.window_s:g} s ({s.window_s / 3600:.3g} h): a window is normally a "
+                   f"minute (60), shorter than the fastest thermal time constants; if you meant {s.window_s:g} ms, "
+                   f"write {s.window_s / 1000:g}")
+    return out
 
 
 _MACHINE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")
