@@ -281,6 +281,20 @@ def _synthetic(y_extra: np.ndarray, *, seed: int = 0) -> tuple:
     return model, rec, build_stack(model, [rec])
 
 
+def test_a_production_run_that_joined_identification_is_not_taken_for_unseen_data(tmp_path):
+    """A day joined with ``identify --production`` is a fit for the model, not a test: diagnosis knows it by
+    content (the file renamed or cut from a longer one); a day of another content under that name is unseen."""
+    model, rec, _ = _synthetic(np.zeros(720))
+    day = replace(rec, source="day1.csv", displacement={"z": rec.displacement["z"] + 0.5})
+    other = replace(rec, source="elsewhere/day1.csv", displacement={"z": rec.displacement["z"] - 0.5})
+    info = {"experiments": ["s"], "experiment_fingerprints": [rec.fingerprint(model.factors)],
+            "production_runs": ["day1"], "production_fingerprints": [day.fingerprint(model.factors)]}
+    model = load_model(save_model(replace(model, info=info), tmp_path / "m.model.toml"))  # as a user has it
+    renamed = replace(day, source="monday.csv")
+    assert build_stack(model, [rec, renamed]).identified(model) == [True, True]
+    assert build_stack(model, [rec, other]).identified(model) == [True, False]
+
+
 def test_steps_are_found_where_heat_cannot_move_that_fast():
     n = 2000
     extra = np.zeros(n)

@@ -90,9 +90,15 @@ class Stack:
         return len(self.time_s)
 
     def identified(self, model: ThermalModel) -> list[bool]:
-        """Per recording, whether it is one of the experiments ``model`` was identified on (by name or content)."""
+        """Per recording, whether ``model`` was identified on it.
+
+        One of its experiments (by name or content) or a production run joined with ``identify --production``
+        (by content only: production files are named ``day1.csv`` on every machine, and a name alone would take
+        an unseen day for a trained one).
+        """
         names = set(model.info.get("experiments", []) or [])
         prints = set(model.info.get("experiment_fingerprints", []) or [])
+        prints |= set(model.info.get("production_fingerprints", []) or [])
         return [name in names or (bool(fp) and fp in prints)
                 for name, fp in zip(self.names, self.fingerprints or [""] * len(self.names), strict=True)]
 
