@@ -61,6 +61,15 @@ class SimulationError(GatewayError):
     exit_code = 7
 
 
+class ServeError(SimulationError):
+    """A simulated device cannot start serving (its port in use, no pseudo-terminal).
+
+    A server that cannot start: exit 1 as for any server, not 7 (a bad scenario).
+    """
+
+    exit_code = 1
+
+
 class DriverError(GatewayError):
     """A device driver failed: it names the device and, where it applies, the channel."""
 

@@ -253,7 +253,7 @@ def test_a_bad_argument_value_found_after_parsing_is_a_usage_error(workdir, caps
     from tests_paths import PROFILES
 
     assert main(["run", "--profile", str(PROFILES / "sim-vmc.toml"), "--data", "d", "--rt-priority", "200"]) == 2
-    assert capsys.readouterr().err == "cncgw: error: --rt-priority must be in 0..99. Got 200\n"
+    assert capsys.readouterr().err == "cncgw: error: --rt-priority must be 0 (the normal scheduler) or 1-99 (SCHED_FIFO). Got 200\n"
     assert not Path("d").exists()
 
 

@@ -46,7 +46,7 @@ def test_profile_out_with_displacement_reads_bursts(tmp_path, capsys):
 
 
 def test_displacement_needs_the_adc_board(capsys):
-    assert main(["simulate", "serve", "spindle-1000rpm", "--via", "dcon", "--displacement"]) == 7
+    assert main(["simulate", "serve", "spindle-1000rpm", "--via", "dcon", "--displacement"]) == 2
     assert capsys.readouterr().err == ("cncgw: error: --displacement: the displacement sensors are on the ADC "
                                        "board, not --via dcon\n")
 

@@ -73,6 +73,18 @@ def test_a_port_in_use_is_a_clear_error_and_nothing_is_left_running():
             serve(WaveSource(), ManualClock(), config)
 
 
+def test_cli_serve_on_a_port_in_use_exits_1_as_a_server_that_cannot_start(capsys):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        rc = cli.main(["simulate", "serve", "spindle-1000rpm", "--cnc-port", str(port), "--duration", "0.3"])
+    err = capsys.readouterr().err
+    assert rc == 1, err  # the README's exit-code table: a server that cannot start; 7 is a bad scenario
+    assert f"cnc: cannot listen on 127.0.0.1:{port} (is the port in use?)" in err
+    assert "Traceback" not in err
+
+
 def test_only_loopback_addresses_are_accepted():
     with pytest.raises(ValueError, match="loopback"):
         DeviceSetConfig(host="0.0.0.0")
@@ -108,7 +120,7 @@ def test_cli_serves_the_simulated_machine(capsys):
 
 
 def test_cli_serve_checks_its_arguments(capsys):
-    assert cli.main(["simulate", "serve", "x.toml", "--speedup", "0"]) == SimulationError.exit_code
+    assert cli.main(["simulate", "serve", "x.toml", "--speedup", "0"]) == 2  # a bad argument value: usage
     assert "--speedup must be a finite number > 0" in capsys.readouterr().err
-    assert cli.main(["simulate", "serve", "x.toml", "--adc-port", "70000"]) == SimulationError.exit_code
+    assert cli.main(["simulate", "serve", "x.toml", "--adc-port", "70000"]) == 2
     assert "--adc-port must be in 0..65535" in capsys.readouterr().err

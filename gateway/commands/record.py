@@ -101,7 +101,8 @@ def run(args: argparse.Namespace) -> int:
         if threading.current_thread() is threading.main_thread():
             previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
         if not 0 <= args.rt_priority <= 99:
-            raise UsageError(f"--rt-priority must be in 0..99. Got {args.rt_priority}")
+            raise UsageError(f"--rt-priority must be 0 (the normal scheduler) or 1-99 (SCHED_FIFO). Got "
+                             f"{args.rt_priority}")
         acq = Acquisition(profile, clock=clock, sinks=[store, report], spin_s=args.spin_us * 1e-6,
                           rt_priority=args.rt_priority)
         print(f"recording {profile.name} from {len(acq.samplers)} device(s) into {store.path}"

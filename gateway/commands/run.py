@@ -96,7 +96,8 @@ def run(args: argparse.Namespace) -> int:
     if not profile.devices:
         raise GatewayError(f"{profile.path}: no [devices] to sample (this is an offline profile)")
     if not 0 <= args.rt_priority <= 99:
-        raise UsageError(f"--rt-priority must be in 0..99. Got {args.rt_priority}")
+        raise UsageError(f"--rt-priority must be 0 (the normal scheduler) or 1-99 (SCHED_FIFO). Got "
+                         f"{args.rt_priority}")
     model, model_path = load_model_for(profile, args.model)
     from gateway.live.plausibility import model_refusals
     from gateway.live.tracking import column_channel_problems, retention_problems

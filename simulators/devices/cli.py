@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
 from gateway.clock import Clock, ScaledClock
-from gateway.errors import SimulationError
+from gateway.errors import UsageError
 from simulators.live import LiveSource
 
 if TYPE_CHECKING:
@@ -62,10 +62,10 @@ def add_actions(actions: argparse._SubParsersAction) -> None:
 def run_serve(args: argparse.Namespace) -> int:
     """Serve the devices of the machine running ``args.scenario``."""
     if not (args.speedup > 0 and math.isfinite(args.speedup)):
-        raise SimulationError(f"--speedup must be a finite number > 0. Got {args.speedup!r}")
+        raise UsageError(f"--speedup must be a finite number > 0. Got {args.speedup!r}")
     for flag, port in (("--adc-port", args.adc_port), ("--cnc-port", args.cnc_port)):
         if not 0 <= port <= 65535:
-            raise SimulationError(f"{flag} must be in 0..65535. Got {port!r}")
+            raise UsageError(f"{flag} must be in 0..65535. Got {port!r}")
     from simulators.devices.deviceset import DeviceSetConfig  # here: keeps `cncgw --help` light
 
     clock = ScaledClock(args.speedup)
@@ -74,12 +74,12 @@ def run_serve(args: argparse.Namespace) -> int:
 
     watchdog_s = args.cnc_watchdog_s if args.cnc_watchdog_s is not None else max(5.0, 0.5 * args.speedup)
     if not (watchdog_s > 0 and math.isfinite(watchdog_s)):
-        raise SimulationError(f"--cnc-watchdog-s must be a finite number > 0. Got {watchdog_s!r}")
+        raise UsageError(f"--cnc-watchdog-s must be a finite number > 0. Got {watchdog_s!r}")
     config = DeviceSetConfig(adc_tcp_port=args.adc_port, cnc_port=args.cnc_port,
                              cnc=dataclasses.replace(CompensationConfig(), heartbeat_timeout_s=watchdog_s))
     on_start = None
     if args.displacement and not args.via.startswith("adc"):
-        raise SimulationError(f"--displacement: the displacement sensors are on the ADC board, not --via {args.via}")
+        raise UsageError(f"--displacement: the displacement sensors are on the ADC board, not --via {args.via}")
     if args.displacement:
         from simulators.devices.profile_out import adc_with_displacement
 

@@ -31,7 +31,7 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.server.base import ModbusBaseServer
 from pymodbus.simulator import SimDevice
 
-from gateway.errors import SimulationError
+from gateway.errors import ServeError
 from simulators.devices.faults import Faults
 from simulators.devices.runtime import LineTime, LineWriter, PtyPort, call_in_loop, check_loopback
 
@@ -195,7 +195,7 @@ class ModbusDevice:
             try:
                 await server.serve_forever(background=True)
             except (RuntimeError, OSError) as exc:
-                raise SimulationError(f"{self.name}: cannot listen on {self.transport.host}:{self.transport.port} "
+                raise ServeError(f"{self.name}: cannot listen on {self.transport.host}:{self.transport.port} "
                                       f"(is the port in use?): {exc}") from None
             sock = server.transport.sockets[0]  # type: ignore[union-attr]
             self._bound = (self.transport.host, int(sock.getsockname()[1]))
@@ -212,7 +212,7 @@ class ModbusDevice:
             except (RuntimeError, OSError) as exc:
                 path = self._server_pty.tty_path
                 self._close_ptys()
-                raise SimulationError(f"{self.name}: cannot open the pseudo-terminal {path}: {exc}") from None
+                raise ServeError(f"{self.name}: cannot open the pseudo-terminal {path}: {exc}") from None
         self._server = server
         await self._started()
         log.info("%s: serving on %s", self.name, self.endpoint)
