@@ -81,15 +81,14 @@ class Fold:
         q = self.F.shape[1]
         self.FF = np.zeros((self.k + 1, q, q))
         #: per contiguous run of a block: its rows, its slot, and the fixed columns not all zero in it (an
-        #: offset, a recording's nuisance or an input's lag is zero outside its recordings) with their rows
+        #: offset, a recording's nuisance or an input's lag is zero outside its recordings) with their rows,
+        #: the target beside them as a last column (a setting's X'F and X'r are one matrix product per run)
         self.runs: list[tuple[int, int, int, np.ndarray | None, np.ndarray]] = []
         for a, b, j in zip(self.starts, self.stops, self.slot, strict=True):
             self.FF[j] += self.F[a:b].T @ self.F[a:b]
             nz = np.flatnonzero(np.any(self.F[a:b] != 0.0, axis=0))
-            if len(nz) == q:
-                self.runs.append((int(a), int(b), int(j), None, self.F[a:b]))
-            else:
-                self.runs.append((int(a), int(b), int(j), nz, np.ascontiguousarray(self.F[a:b, nz])))
+            Fr = np.column_stack([self.F[a:b] if len(nz) == q else self.F[a:b, nz], r[a:b]])
+            self.runs.append((int(a), int(b), int(j), None if len(nz) == q else nz, Fr))
         self.Fr = self.sums(self.F * r[:, None])
         self.rr = self.sums(r * r)
         self._solver: _FixedSolve | None = None
@@ -145,43 +144,51 @@ def _run_sums(fold: Fold, XT: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarra
 
     ``XT`` (G p, n): setting g's regressors are rows g p .. g p + p - 1 (windows along a row, so each row
     is one contiguous column of the stack; scaled in place). Returned slots first: (K + 1, G, p, q),
-    (K + 1, G, p, p), (K + 1, G, p) (slot K: burn-in rows). X'F is one matrix product per contiguous run
-    of a block for the whole batch (the fixed columns are read once, not once per setting); X'X and X'r are
-    sums per run of elementwise products.
+    (K + 1, G, p, p), (K + 1, G, p) (slot K: burn-in rows). X'F and X'r are one matrix product per contiguous
+    run of a block for the whole batch (the fixed columns and the target are read once, not once per
+    setting); X'X is sums per run of elementwise products.
     """
     n_set = XT.shape[0] // p
     q = fold.F.shape[1]
     xs = np.sqrt(np.einsum("in,in->i", XT, XT))
     xs[xs == 0] = 1.0
     Xs = np.divide(XT, xs[:, None], out=XT)  # in place: the batch's own copy (grid_scores)
+    # per regressor and contiguous run of a block: its sum of squares (X'X's diagonal, run by run), and so
+    # whether it is non-zero there (a square underflows only below 1e-154 of the regressor's norm)
+    squares = np.add.reduceat(Xs * Xs, fold.starts, axis=-1)
+    live = squares > 0.0
     XF = np.zeros((fold.k + 1, n_set * p, q))
-    # per regressor and contiguous run of a block: whether it is non-zero there (logical_or: a bool sum's
-    # reduceat casts every element)
-    live = np.logical_or.reduceat(Xs != 0.0, fold.starts, axis=-1)
-    for i, (a, b, j, nz, Fb) in enumerate(fold.runs):  # columns (fixed or the settings') zero in a run add nothing
+    Xr_run = np.zeros((n_set * p, len(fold.runs)))
+    for i, (a, b, j, nz, Fr) in enumerate(fold.runs):  # columns (fixed or the settings') zero in a run add nothing
         Xb = Xs[:, a:b]
         moving = np.flatnonzero(live[:, i])
         if len(moving) < 0.8 * len(Xb):
             if not len(moving):
                 continue
-            part = Xb[moving] @ Fb
+            part = Xb[moving] @ Fr
             if nz is None:
-                XF[j][moving] += part
+                XF[j][moving] += part[:, :-1]
             else:
-                XF[j][np.ix_(moving, nz)] += part
-        elif nz is None:
-            XF[j] += Xb @ Fb
+                XF[j][np.ix_(moving, nz)] += part[:, :-1]
+            Xr_run[moving, i] = part[:, -1]
         else:
-            XF[j][:, nz] += Xb @ Fb
-    Xr = fold.run_sums(Xs * fold.r)  # (G p, K + 1)
+            part = Xb @ Fr
+            if nz is None:
+                XF[j] += part[:, :-1]
+            else:
+                XF[j][:, nz] += part[:, :-1]
+            Xr_run[:, i] = part[:, -1]
+    Xr = Xr_run @ fold._slot_of_run  # (G p, K + 1)
     X3 = Xs.reshape(n_set, p, -1)
     # the runs in which regressor u of any setting is not zero: a recording's nuisance (its initial state, its
     # drift) is zero in every other recording, and two regressors that are never non-zero in the same run have
     # a product of exact zeros, whose sums are zero (computed, they would be zero too, up to the sign of zero)
     support = live.reshape(n_set, p, -1).any(axis=0)
     XX = np.zeros((fold.k + 1, n_set, p, p))
+    diagonal = squares.reshape(n_set, p, -1)
     for u in range(p):
-        for v in range(u, p):
+        XX[:, :, u, u] = (diagonal[:, u] @ fold._slot_of_run).T
+        for v in range(u + 1, p):
             common = support[u] & support[v]
             if common.all():
                 XX[:, :, u, v] = XX[:, :, v, u] = fold.run_sums(X3[:, u] * X3[:, v]).T
