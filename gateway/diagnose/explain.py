@@ -157,8 +157,8 @@ def explain(stack: Stack, model: ThermalModel, reid: Reidentified, comparison: C
                        f"free {free.sse:.4g} um^2)")
         if out.closest:
             c = out.closest[0]
-            recovers = (f" recovers {100 * c.share:.0f} % of what freeing the paths removed" if math.isfinite(c.share)
-                        else "")
+            recovers = ("" if not math.isfinite(c.share) else " predicts better than the free paths" if c.share > 1
+                        else f" recovers {100 * c.share:.0f} % of what freeing the paths removed")
             out.verdict += f"; closest: {c.title}{recovers} (with it {c.sse_um2:.4g} um^2; {c.verdict})"
         return out
     for k in range(1, len(accepted) + 1):
