@@ -168,12 +168,15 @@ class AxisProblem:
         if self.extra.shape[1] and project_extra:
             E = self.demean(self.extra)
             escale = np.linalg.norm(E, axis=0)
-            escale[escale == 0] = 1.0
-            Qe, Re = scipy.linalg.qr(E / escale, mode="economic", check_finite=False)
+            # columns that are zero where measured (a held-out recording's own nuisance, a constant absorbed by
+            # its offset) are left out: their gains are 0, as the unprojected solve leaves them
+            live = np.flatnonzero(escale > 0)
+            Qe, Re = scipy.linalg.qr(E[:, live] / escale[live], mode="economic", check_finite=False)
             diag = np.abs(np.diag(Re))
             if diag.size and np.all(diag > 1e-10 * max(diag.max(), 1e-300)):  # else solved with the paths
-                self._extra_q, self._extra_r, self._extra_scale = Qe, Re, escale
-                self._extra_means = self._group_means(self.extra)
+                self._extra_q, self._extra_r, self._extra_scale = Qe, Re, escale[live]
+                self._extra_live = live
+                self._extra_means = self._group_means(self.extra[:, live])
                 self._qty_extra = Qe.T @ self.y_demeaned
                 self._y_projected = self.y_demeaned - Qe @ self._qty_extra
         # the racing restarts an optimizer where the last one stopped: its first residual and Jacobian
@@ -331,9 +334,11 @@ class AxisProblem:
         else:
             resid = y.copy()
             extra_rhs = self._qty_extra
-        extra = scipy.linalg.solve_triangular(self._extra_r, extra_rhs, check_finite=False) / self._extra_scale
+        live = scipy.linalg.solve_triangular(self._extra_r, extra_rhs, check_finite=False) / self._extra_scale
         shift = means @ coef if means is not None else 0.0
-        offsets[self._counts > 0] = self._y_means - shift - self._extra_means @ extra
+        offsets[self._counts > 0] = self._y_means - shift - self._extra_means @ live
+        extra = np.zeros(self.extra.shape[1])
+        extra[self._extra_live] = live
         return np.concatenate([coef, extra, offsets]), resid, Q
 
     def fit(self, structures: Sequence[str], theta0: Sequence[Sequence[float]], *,
