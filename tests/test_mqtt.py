@@ -86,10 +86,14 @@ def test_payloads_carry_units_quality_and_the_window_id(broker, tmp_path):
                                                                            "unit": "rpm"}
     assert got[("cncgw/vmc-3/factors", 9)]["values"]["spindle_i1_sq"]["quality"] == "uncertain"
     assert got[("cncgw/vmc-3/health", 9)]["quality"] == "bad"
+    # a clean stop says so: the goodbye is acknowledged before stop() returns, but the broker files what it
+    # received on its own loop, which on a loaded PC can come a moment after its acknowledgement
+    wait_for(lambda: json.loads(broker.messages("cncgw/vmc-3/status")[-1].payload)["state"] == "offline",
+             timeout_s=5.0, what="the clean goodbye at the broker")
     status = [json.loads(m.payload) for m in broker.messages("cncgw/vmc-3/status")]
     assert status[0]["state"] == "online"  # birth
     assert status[0]["units"]["spindle_speed"] == "rpm"
-    assert status[-1] == {"state": "offline", "clean": True, "machine": "vmc-3"}  # a clean stop says so
+    assert status[-1] == {"state": "offline", "clean": True, "machine": "vmc-3"}
     assert all(m.retain for m in broker.messages("cncgw/vmc-3/status"))
 
 

@@ -155,7 +155,7 @@ class MqttOutput:
                     info = client.publish(self.settings.topic(self.machine, "status"),
                                           encode({"state": "offline", "clean": True, "machine": self.machine}),
                                           qos=QOS, retain=True)
-                    info.wait_for_publish(timeout=2.0)
+                    info.wait_for_publish(timeout=STOP_TIMEOUT_S)  # a loaded PC: the goodbye is worth seconds
             client.disconnect()
             client.loop_stop()
         self._drain_acks()
