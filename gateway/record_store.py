@@ -66,19 +66,28 @@ CREATE TABLE IF NOT EXISTS windows (
 """
 
 
+def make_dir(path: str | Path, role: str, *, mode: int = 0o777) -> Path:
+    """Create the directory ``path`` (``role``: what it is for, for the message) with its parents if missing.
+
+    A file of that name or a folder this user may not write is one line naming it, not a traceback.
+    """
+    path = Path(path)
+    try:
+        path.mkdir(mode=mode, parents=True, exist_ok=True)
+    except OSError as exc:
+        reason = "a file, not a directory" if path.is_file() else exc.strerror or exc
+        raise GatewayError(f"{path}: cannot be {role}: {reason}: expected a directory this user can create and "
+                           "write") from None
+    return path
+
+
 def private_dir(path: str | Path) -> Path:
     """Create the data directory ``path`` for this user only (0700), or narrow an existing one to that.
 
     Records and the audit log describe a machine's work: nobody else on the PC needs to read them. A
     directory this user does not own is left as it is, with a warning.
     """
-    path = Path(path)
-    try:
-        path.mkdir(mode=0o700, parents=True, exist_ok=True)
-    except OSError as exc:  # a file of that name, a folder this user may not write: one line, not a traceback
-        reason = 'a file, not a directory' if path.is_file() else exc.strerror or exc
-        raise GatewayError(f"{path}: cannot be the data directory: {reason}: expected a directory this "
-                           "user can create and write") from None
+    path = make_dir(path, "the data directory", mode=0o700)
     _narrow(path, 0o700)
     return path
 

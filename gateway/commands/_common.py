@@ -142,6 +142,12 @@ def check_output(option: str, path: str | None, *, directory: bool = False) -> N
         raise UsageError(f"{option} {p}: the folder {p.parent} does not exist: expected a file in an existing folder")
 
 
+def check_rt_priority(value: int) -> None:
+    """``--rt-priority`` of ``run`` and ``record``: 0 (the normal scheduler) or a SCHED_FIFO priority 1-99."""
+    if not 0 <= value <= 99:
+        raise UsageError(f"--rt-priority must be 0 (the normal scheduler) or 1-99 (SCHED_FIFO). Got {value}")
+
+
 def fail_if_exists(path: Path, force: bool) -> None:
     """Refuse to replace ``path`` unless ``--force`` (checked before the work, so none is lost).
 

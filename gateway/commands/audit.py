@@ -56,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     log = None
     try:
         # read-only: never a write, nor a schema, in the file a running gateway appends to
-        log = AuditLog.read_only(path)
+        log = AuditLog(path, read_only=True)
         text = _events_csv(log) if args.events else _writes_csv(log)
     except (sqlite3.Error, ValueError, KeyError) as exc:
         raise GatewayError(f"{path}: not an audit log cncgw can read: {exc}") from None
@@ -75,6 +75,10 @@ def _iso(t_s: float) -> str:
     return datetime.fromtimestamp(t_s, UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
 
 
+#: per axis and write, in this order: the WriteEntry fields ``<name>_um``
+_VALUES = ("estimate", "target", "commanded", "applied")
+
+
 def _writes_csv(log: AuditLog) -> str:
     rows = list(log.writes())
     axes: list[str] = []
@@ -85,11 +89,11 @@ def _writes_csv(log: AuditLog) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["t_s", "wall_time", "window", "mode", "verified", "status",
-                *[f"{a}_{k}_um" for a in axes for k in ("estimate", "target", "commanded", "applied")], "note"])
+                *[f"{a}_{k}_um" for a in axes for k in _VALUES], "note"])
     for r in rows:
         cells = []
         for a in axes:
-            cells += [_num(getattr(r, f"{k}_um").get(a)) for k in ("estimate", "target", "commanded", "applied")]
+            cells += [_num(getattr(r, f"{k}_um").get(a)) for k in _VALUES]
         w.writerow([f"{r.t_s:.3f}", _iso(r.wall_s), "" if r.window is None else r.window, r.mode, int(r.verified),
                     "" if r.status is None else r.status, *cells, r.note])
     return buf.getvalue()

@@ -17,10 +17,10 @@ import threading
 from pathlib import Path
 
 from gateway.clock import Clock, RealClock, ScaledClock
-from gateway.commands._common import positive_float
-from gateway.errors import DriverError, GatewayError, UsageError
+from gateway.commands._common import check_rt_priority, positive_float
+from gateway.errors import DriverError, GatewayError
 from gateway.profile import load_profile
-from gateway.record_store import STORE_NAME, RecordStore, export_recording
+from gateway.record_store import STORE_NAME, RecordStore, export_recording, make_dir
 from gateway.windows import WindowRecord, window_index
 
 log = logging.getLogger(__name__)
@@ -65,12 +65,7 @@ def run(args: argparse.Namespace) -> int:
         raise GatewayError(f"{profile.path}: no [devices] to record from (this is an offline profile)")
     if args.verbose < 2:
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # our runner reports device errors once
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        reason = 'a file, not a directory' if out.is_file() else exc.strerror or exc
-        raise GatewayError(f"{out}: cannot be the output directory: {reason}: expected a directory this "
-                           "user can create and write") from None
+    make_dir(out, "the output directory")
     from threadpoolctl import threadpool_limits
 
     from gateway.sampler import Acquisition
@@ -100,9 +95,7 @@ def run(args: argparse.Namespace) -> int:
         previous = None
         if threading.current_thread() is threading.main_thread():
             previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
-        if not 0 <= args.rt_priority <= 99:
-            raise UsageError(f"--rt-priority must be 0 (the normal scheduler) or 1-99 (SCHED_FIFO). Got "
-                             f"{args.rt_priority}")
+        check_rt_priority(args.rt_priority)
         acq = Acquisition(profile, clock=clock, sinks=[store, report], spin_s=args.spin_us * 1e-6,
                           rt_priority=args.rt_priority)
         print(f"recording {profile.name} from {len(acq.samplers)} device(s) into {store.path}"

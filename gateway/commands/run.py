@@ -19,8 +19,8 @@ from pathlib import Path
 from typing import Any
 
 from gateway.clock import Clock, RealClock, ScaledClock
-from gateway.commands._common import load_model_for, plain, positive_float
-from gateway.errors import GatewayError, ModelError, ProfileError, UsageError
+from gateway.commands._common import check_rt_priority, load_model_for, plain, positive_float
+from gateway.errors import GatewayError, ModelError, ProfileError
 from gateway.profile import load_profile
 
 log = logging.getLogger("gateway.live")
@@ -95,9 +95,7 @@ def run(args: argparse.Namespace) -> int:
     profile = load_profile(args.profile)
     if not profile.devices:
         raise GatewayError(f"{profile.path}: no [devices] to sample (this is an offline profile)")
-    if not 0 <= args.rt_priority <= 99:
-        raise UsageError(f"--rt-priority must be 0 (the normal scheduler) or 1-99 (SCHED_FIFO). Got "
-                         f"{args.rt_priority}")
+    check_rt_priority(args.rt_priority)
     model, model_path = load_model_for(profile, args.model)
     from gateway.live.plausibility import model_refusals
     from gateway.live.tracking import column_channel_problems, retention_problems

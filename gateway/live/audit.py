@@ -70,27 +70,27 @@ class WriteEntry:
 class AuditLog:
     """The append-only audit file; see the module docstring. Thread-safe; ``path=None`` keeps it in memory."""
 
-    def __init__(self, path: str | Path | None) -> None:
+    def __init__(self, path: str | Path | None, *, read_only: bool = False) -> None:
+        """Open (create) the audit file, or ``read_only`` an existing one.
+
+        Read-only: nothing written, no schema (``cncgw audit`` beside a running gateway).
+        """
         self.path = Path(path) if path is not None else None
+        self._lock = threading.Lock()
+        if read_only:
+            assert self.path is not None, "a read-only audit log is a file"
+            self._db: sqlite3.Connection | None = sqlite3.connect(
+                f"{self.path.resolve().as_uri()}?mode=ro", uri=True, check_same_thread=False)
+            return
         if self.path is not None:
             from gateway.record_store import private_file
 
             private_file(self.path)  # 0600: what was written to a machine is nobody else's business
-        self._lock = threading.Lock()
-        self._db: sqlite3.Connection | None = sqlite3.connect(
+        self._db = sqlite3.connect(
             ":memory:" if path is None else str(path), check_same_thread=False, isolation_level=None)
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=FULL")
         self._db.executescript(_SCHEMA)
-
-    @classmethod
-    def read_only(cls, path: str | Path) -> AuditLog:
-        """An existing audit file opened read-only (``cncgw audit`` beside a running gateway): nothing written."""
-        log = cls.__new__(cls)
-        log.path = Path(path)
-        log._lock = threading.Lock()
-        log._db = sqlite3.connect(f"{log.path.resolve().as_uri()}?mode=ro", uri=True, check_same_thread=False)
-        return log
 
     def write(self, e: WriteEntry) -> None:
         body = json.dumps(nan_to_none({"estimate_um": dict(e.estimate_um), "target_um": dict(e.target_um),

@@ -65,7 +65,7 @@ def run_record(args: argparse.Namespace) -> int:
     every_h = args.probes_every_h
     if every_h is not None and not (0 < every_h <= scenario.duration_h and 0 < args.probe_sd_um <= 50):
         raise UsageError(f"--probes-every-h {every_h:g} --probe-sd-um {args.probe_sd_um:g}: expected an interval "
-                              f"in (0, {scenario.duration_h:g}] h (the run's length) and an uncertainty in (0, 50] um")
+                         f"in (0, {scenario.duration_h:g}] h (the run's length) and an uncertainty in (0, 50] um")
     result = simulate(scenario, progress=not args.no_progress)
     try:
         rec, truth = write_run(result, args.out, probe_every_s=None if every_h is None else every_h * 3600.0,
