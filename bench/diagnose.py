@@ -374,6 +374,8 @@ class Names:
     nothing_missing: bool  # report.md says "nothing significant is missing"
     says_unfit: bool  # report.md says the model is not fit for compensation
     source: str  # where the names were read
+    #: "key ~ factor": mechanisms the report says these recordings cannot tell from a factor's path
+    indistinguishable: list[str] = field(default_factory=list)
 
 
 def diagnosis_names(out_dir: Path) -> Names:
@@ -392,11 +394,13 @@ def diagnosis_names(out_dir: Path) -> Names:
             # named: what was written, and what explains the re-identified paths' change (named, maybe not written)
             named = list(info.get("accepted", []))
             named += [n for n in info.get("explained", []) if n not in named]
-            return Names(named, list(info.get("artefacts_excluded", [])), nothing, unfit, "model info")
+            return Names(named, list(info.get("artefacts_excluded", [])), nothing, unfit, "model info",
+                         list(info.get("indistinguishable", [])))
     if (out_dir / "report.json").is_file():
         doc = json.loads((out_dir / "report.json").read_text())
         if "accepted" in doc:
-            return Names(list(doc["accepted"]), list(doc.get("artefacts", [])), nothing, unfit, "report.json")
+            return Names(list(doc["accepted"]), list(doc.get("artefacts", [])), nothing, unfit, "report.json",
+                         [f"{c['hypothesis']} ~ {c['factor']}" for c in doc.get("indistinguishable", [])])
     accepted = []
     if "## Accepted" in md:
         section = md.split("## Accepted", 1)[1].split("\n## ", 1)[0]
@@ -464,6 +468,7 @@ class Row:
     names_from: str = ""
     nothing_missing: bool = False
     says_unfit: bool = False
+    indistinguishable: list[str] = field(default_factory=list)  # as :class:`Names`
     before: dict[str, float] = field(default_factory=dict)  # fresh-day RMS per axis, baseline
     after: dict[str, float] = field(default_factory=dict)  # fresh-day RMS per axis, written model
     before_pct: dict[str, float] = field(default_factory=dict)  # fresh-day max error % of peak, baseline
@@ -509,6 +514,7 @@ def run_bench_case(protocol: str, effect_name: str, variant: int, cache: Path, r
             names = diagnosis_names(out)
             row.accepted, row.artefacts, row.names_from = names.accepted, names.artefacts, names.source
             row.nothing_missing, row.says_unfit = names.nothing_missing, names.says_unfit
+            row.indistinguishable = names.indistinguishable
             written = sorted(out.glob("*.diagnosed.model.toml"))
             if not written:
                 raise CommandFailed(f"no *.diagnosed.model.toml in {out}")
@@ -619,9 +625,12 @@ def summary(verdicts: list[Verdict], *, protocol: str) -> list[str]:
     for name in dict.fromkeys(v.row.effect for v in effects):
         vs = [v for v in effects if v.row.effect == name]
         g = [100 * min(v.gains.get(a, math.nan) for a in v.moved) for v in vs if v.moved]
+        said = sum(any(is_family(n.split(" ~ ")[0], EFFECTS[name].families) for n in v.row.indistinguishable)
+                   for v in vs)
         out.append(f"  {name:<20} moves an axis in {sum(bool(v.moved) for v in vs)}/{len(vs)}, named right "
                    f"{sum(bool(v.right) for v in vs)}/{len(vs)} (first {sum(bool(v.first) for v in vs)}), "
                    f"wrong names {sum(bool(v.wrong) for v in vs)}/{len(vs)}"
+                   + (f", said indistinguishable from a factor's path {said}/{len(vs)}" if said else "")
                    + (f", worst gain on a moved axis median {np.median(g):+.0f} %" if g else ""))
     absorbed = [v for v in effects if v.absorbed]
     out.append(f"absorbed effects given no wrong name: {sum(not v.wrong for v in absorbed)}/{len(absorbed)}  "

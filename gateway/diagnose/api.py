@@ -21,6 +21,7 @@ from threadpoolctl import threadpool_limits
 from gateway import __version__
 from gateway.diagnose.adequacy import Adequacy, assess
 from gateway.diagnose.compare import Comparison, compare
+from gateway.diagnose.confusable import Confusion, confusions
 from gateway.diagnose.data import Stack, build_stack, recording_label
 from gateway.diagnose.explain import Explanation, explain, held_corrections
 from gateway.diagnose.extend import extend_model
@@ -88,6 +89,8 @@ class Diagnosis:
     block: np.ndarray
     #: when more data alone won: what the re-identified paths changed, and the physics that explains it
     explanation: Explanation | None = None
+    #: mechanisms whose inputs one factor carries on these recordings: no fit can name them
+    confusions: list[Confusion] = field(default_factory=list)
     conclusions: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     wall_s: float = 0.0
@@ -158,6 +161,7 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
         measured = np.isfinite(stack.y).any(axis=0)
         block = make_blocks(stack.bounds, measured, options.blocks)
         hyps = catalogue(stack, model, infos, families=families)
+        confused = confusions(stack, hyps)
         # two ways to judge a hypothesis: as a term on the frozen identified model (its paths trusted), and with
         # every path refitted beside it (the paths corrected: what the missing physics did to identification);
         # the false-positive budget is split between them
@@ -201,6 +205,7 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
               else [],
               "explained": explanation.names if explanation is not None else [],
               "paths_changed": explanation.changes if explanation is not None else [],
+              "indistinguishable": [f"{c.key} ~ {c.factor}" for c in confused],
               "artefacts_excluded": [text for t, text in on if t.hypothesis.artefact]
               + [f"step on {s.axis} at {s.time_h:.2f} h in {s.recording}" for f in findings.values() for s in f.steps]}
     extended = comparison.written.model
@@ -212,7 +217,7 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
     extended = replace(extended, info={**extended.info, "diagnosis": record})
     diag = Diagnosis(model=model, extended=extended, stack=stack, findings=findings, hypotheses=hyps, result=result,
                      results=results, options=options, adequacy=adequacy, comparison=comparison, reidentified=reid,
-                     block=block, notes=list(stack.notes), explanation=explanation)
+                     block=block, notes=list(stack.notes), explanation=explanation, confusions=confused)
     diag.conclusions = conclusions(diag, block)
     if options.reidentify and missing:
         which = ("the model names no identification experiments" if missing == [NONE_NAMED] else
@@ -314,6 +319,8 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
         else:
             out.append(f"more data changed the paths ({changed}); no hypothesis explains the change with the paths "
                        f"held at the identified time constants ({ex.verdict}): no family is named")
+    accepted = {t.hypothesis.key for t in physics} | {t.hypothesis.key for t in (ex.named if ex else [])}
+    out += [c.line(accepted=c.key in accepted) for c in d.confusions]
     if not physics:
         tried = [t for t in d.result.trials if t.round == 1 and not t.hypothesis.artefact]
         # ranked by evidence; "closest" only for one that predicted the held-out blocks better than nothing

@@ -103,6 +103,8 @@ class Hypothesis:
     #: a structural change of an identified path (an extra mode, a dead time) rather than a named mechanism:
     #: it can mimic most slow heat sources, so it counts one parameter more when hypotheses are ranked
     generic: bool = False
+    #: what would tell it apart from a factor's path when these recordings cannot (see diagnose.confusable)
+    tell_apart: str = ""
 
     @functools.cached_property
     def complexity(self) -> int:
@@ -355,7 +357,9 @@ def _cabinet(ctx: _Ctx) -> list[Hypothesis]:
         explanation=("The amplifiers lose heat ~ the sum of their motor currents squared, in a cabinet bolted "
                      "to the column; it warms the column through a slow lag. No factor carries it: every "
                      "current factor heats its own motor, not the cabinet."),
-        settings={a: grid for a in ctx.axes}, shared=("tau_s", "tau_fast_s", "tau_slow_s"))]
+        settings={a: grid for a in ctx.axes}, shared=("tau_s", "tau_fast_s", "tau_slow_s"),
+        tell_apart=("record the cabinet's air temperature as a column (diagnose then tests it as a recorded "
+                    "signal), or run the feed axes hard for hours with the spindle at rest"))]
 
 
 def _chiller(ctx: _Ctx) -> list[Hypothesis]:

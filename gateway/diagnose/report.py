@@ -86,6 +86,9 @@ def to_json(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = "",
         "written": d.comparison.chosen,
         "explained": d.explanation.names if d.explanation is not None else [],
         "paths_changed": d.explanation.changes if d.explanation is not None else [],
+        "indistinguishable": [{"hypothesis": c.key, "title": c.title, "inputs": list(c.inputs), "factor": c.factor,
+                               "unexplained_share": c.unexplained, "tell_apart": c.tell_apart}
+                              for c in d.confusions],
         "candidates": {k: {"title": c.title, "passes": c.passes, "verdict": c.verdict, "p": c.p, "gain_share": c.gain,
                            "held_out_sse_um2": c.sse, "metrics": metrics(c.metrics)}
                        for k, c in d.comparison.candidates.items()},

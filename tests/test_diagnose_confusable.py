@@ -1,0 +1,87 @@
+"""A mechanism whose input one factor carries is said to be indistinguishable, not named: the cabinet case.
+
+The control cabinet's heat is the sum of every amplifier's current squared. In a job shop's days the
+spindle's current is nearly all of it (the feed axes' currents are small and follow the same jobs), so a
+slower mode on the spindle current's path does what the cabinet would, and no fit can tell them apart:
+diagnosis says so, and what would tell them apart. Once the feed axes run hard for hours with the spindle at
+rest, the cabinet's input is no longer the spindle's, and nothing is said. Eddy loss (speed^2) stays
+distinguishable from the speed on the same days. Fast (under a second).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gateway.diagnose.confusable import CONFUSED_SHARE, confusions, unexplained_share
+from gateway.diagnose.data import build_stack
+from gateway.diagnose.hypotheses import FactorInfo, catalogue
+from gateway.model import FirstOrder, PathTF, ThermalModel
+from gateway.recording import Recording
+
+F = ("spindle_speed", "spindle_i1_sq", "x_i_sq", "y_i_sq")
+INFOS = [FactorInfo(name="spindle_speed", unit="rpm"), FactorInfo(name="spindle_i1_sq", unit="A^2", stat="mean_square"),
+         FactorInfo(name="x_i_sq", unit="A^2", stat="mean_square"),
+         FactorInfo(name="y_i_sq", unit="A^2", stat="mean_square")]
+MODEL = ThermalModel(axes=("z",), factors=F, units={f.name: f.unit for f in INFOS}, reference={}, paths={
+    ("z", f): PathTF(axis="z", factor=f, terms=(FirstOrder(gain=0.01, tau_s=1800.0),)) for f in F})
+
+
+def _recording(name: str, speed: np.ndarray, load: np.ndarray, x_i_sq: np.ndarray, *, seed: int) -> Recording:
+    rng = np.random.default_rng(seed)
+    n = len(speed)
+    spindle = 2.0 + load * (speed > 0)  # the spindle's current follows the cut's torque, not its speed
+    return Recording(source=f"{name}.csv", period_s=60.0, time_s=60.0 * np.arange(1, n + 1),
+                     present=np.ones(n, dtype=bool),
+                     factors={"spindle_speed": speed, "spindle_i1_sq": spindle, "x_i_sq": x_i_sq,
+                              "y_i_sq": 0.5 * x_i_sq + 0.01 * rng.standard_normal(n)},
+                     displacement={"z": 0.1 * rng.standard_normal(n)})
+
+
+def _day(day: int) -> Recording:
+    """A job shop's day: jobs at 800-3000 rpm; the feed axes' currents small, moving with the jobs."""
+    rng = np.random.default_rng(day)
+    speed, load = np.zeros(1440), np.zeros(1440)
+    k = int(rng.integers(360, 480))
+    while k < 1320:
+        m = int(rng.integers(20, 90))
+        speed[k:k + m] = rng.choice([0.0, 800.0, 1500.0, 3000.0])
+        load[k:k + m] = rng.uniform(5.0, 100.0)
+        k += m
+    x_i_sq = 0.5 * (speed > 0) + 0.02 * rng.standard_normal(1440)
+    return _recording(f"day{day}", speed, load, x_i_sq, seed=day)
+
+
+def _axes_alone() -> Recording:
+    """The feed axes run hard for 8 h with the spindle at rest."""
+    x_i_sq = np.zeros(720)
+    x_i_sq[60:540] = 40.0
+    return _recording("exp-feed-x", np.zeros(720), np.zeros(720), x_i_sq, seed=7)
+
+
+def _confused(recordings: list[Recording]) -> dict[str, object]:
+    stack = build_stack(MODEL, recordings)
+    return {c.key: c for c in confusions(stack, catalogue(stack, MODEL, INFOS))}
+
+
+def test_the_cabinet_is_said_indistinguishable_from_the_spindle_current_on_job_shop_days():
+    found = _confused([_day(d) for d in range(1, 5)])
+    assert set(found) == {"cabinet"}, found  # eddy loss, preload, chiller: their inputs are their own
+    c = found["cabinet"]
+    assert c.factor == "spindle_i1_sq"
+    assert c.unexplained < CONFUSED_SHARE
+    line = c.line()
+    assert "cannot name it" in line
+    assert "follows spindle_i1_sq" in line
+    assert "cabinet's air temperature" in line
+    assert "is not established" in c.line(accepted=True)
+
+
+def test_the_feed_axes_run_alone_tell_the_cabinet_apart():
+    assert _confused([*(_day(d) for d in range(1, 5)), _axes_alone()]) == {}
+
+
+def test_unexplained_share():
+    t = np.linspace(0.0, 10.0, 500)
+    assert unexplained_share(3.0 * np.sin(t) + 2.0, np.sin(t)) < 1e-12
+    assert unexplained_share(np.sin(t), np.zeros_like(t)) == 1.0  # a flat factor carries nothing
+    assert 0.45 < unexplained_share(np.sin(t) + np.cos(t), np.sin(t)) < 0.55
