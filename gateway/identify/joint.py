@@ -32,6 +32,7 @@ from gateway.identify.common import (
     Bounds,
     ExperimentSet,
     effective_n,
+    fast_time_constant,
     n_linear,
     n_nonlinear,
     terms_with_gains,
@@ -105,6 +106,13 @@ def _length_groups(rows: np.ndarray, lengths: np.ndarray) -> list[np.ndarray]:
         else:
             groups.append([r])
     return [np.array(g) for g in groups]
+
+
+def _term_keys(structure: str, theta: Sequence[float]) -> list[tuple[float, ...]]:
+    """Per term of :func:`unit_responses`, what its response depends on (two modes: each mode's time constant)."""
+    if structure == "two_modes":
+        return [(fast_time_constant(theta),), (math.exp(theta[0]),)]
+    return [tuple(float(t) for t in theta)] * n_linear(structure)
 
 
 def _split(v: np.ndarray, sizes: Sequence[int]) -> list[np.ndarray]:
@@ -212,6 +220,25 @@ class AxisProblem:
             for col, resp in zip(out, unit_responses(structure, theta, du, self.es.dt_s, memo=memo), strict=True):
                 col[dest] = resp.ravel().take(src)
         return out
+
+    def path_difference(self, j: int, structure: str, theta: Sequence[float], moved: Sequence[float],
+                        base: Sequence[np.ndarray], gains: Sequence[float], h: float, out: np.ndarray) -> None:
+        """``out`` (zeros) := sum over the path's terms of (column at ``moved`` - ``base`` column) * gain / ``h``.
+
+        The numbers of ``sum((m - c) * g for ...) / h`` over whole :meth:`path_columns`, computed only on the
+        rows of the experiments in which the factor moves (elsewhere both columns are zeros and so is the
+        difference) and without the terms ``moved`` leaves as they were (a two-mode path's slow mode when
+        only its fast one moves: a difference of exact zeros adds nothing).
+        """
+        changed = [a != b for a, b in zip(_term_keys(structure, theta), _term_keys(structure, moved), strict=True)]
+        for du, src, dest, memo in self._moving[j]:
+            acc: float | np.ndarray = 0
+            for resp, c, g, on in zip(unit_responses(structure, moved, du, self.es.dt_s, memo=memo), base, gains,
+                                      changed, strict=True):
+                if on:
+                    acc = acc + (resp.ravel().take(src) - c[dest]) * g
+            if isinstance(acc, np.ndarray):
+                out[dest] = acc / h
 
     def columns(self, structures: Sequence[str], thetas: Sequence[Sequence[float]]) -> np.ndarray:
         """The whole design: path columns, the extra columns, one offset column per experiment."""
@@ -380,15 +407,15 @@ class AxisProblem:
         def kaufman(x: np.ndarray) -> np.ndarray:
             thetas, per_path, coef, _, Q = evaluate(x)
             gains = _split(coef, [len(cols) for cols in per_path])
-            V = np.empty((self.n, x.size))
+            # column by column (Fortran order: each column contiguous); rows where the path's factor rests stay 0
+            V = np.zeros((self.n, x.size), order="F")
             for q, j in enumerate(owner):
                 local = q - sum(sizes[:j])
                 h = 1e-6 * max(1.0, abs(thetas[j][local]))
                 th = thetas[j].copy()
                 th[local] += h
-                moved = self.path_columns(j, structures[j], th)
-                V[:, q] = sum((m - c) * g for m, c, g in zip(moved, per_path[j], gains[j], strict=True)) / h
-            V = self.project_extra(self.demean(V))
+                self.path_difference(j, structures[j], thetas[j], th, per_path[j], gains[j], h, V[:, q])
+            V = self.project_extra(self.demean(np.ascontiguousarray(V)))
             return -(V - Q @ (Q.T @ V))
 
         nfev = 1
