@@ -108,6 +108,11 @@ def _length_groups(rows: np.ndarray, lengths: np.ndarray) -> list[np.ndarray]:
     return [np.array(g) for g in groups]
 
 
+def _column_norms(X: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(X, axis=0)`` of a real matrix, the same numbers without its copy (``X.conj()``)."""
+    return np.sqrt(np.add.reduce(X * X, axis=0))
+
+
 def _term_keys(structure: str, theta: Sequence[float]) -> list[tuple[float, ...]]:
     """Per term of :func:`unit_responses`, what its response depends on (two modes: each mode's time constant)."""
     if structure == "two_modes":
@@ -122,6 +127,89 @@ def _split(v: np.ndarray, sizes: Sequence[int]) -> list[np.ndarray]:
         out.append(v[k: k + n])
         k += n
     return out
+
+
+class _ExtraBasis:
+    """An orthonormal basis of a problem's (demeaned, scaled) extra columns that keeps their sparsity.
+
+    Most extra columns of a diagnosis are one recording's own (its initial state, its drift): zero outside its
+    rows. Their basis is built recording by recording (a QR of that recording's rows), the other columns' after
+    projecting those out, so ``Q'M`` and ``Q C`` cost a recording's rows per local column instead of every row:
+    the projection of :class:`AxisProblem` with ``project_extra`` (the span, and so the least squares, is the
+    same as one QR of all the columns gives). Columns are reordered (:attr:`order`): each recording's local
+    ones, then the rest; :attr:`r` is the triangular factor in that order.
+    """
+
+    def __init__(self, blocks: list[tuple[int, int, np.ndarray]], q_rest: np.ndarray, r: np.ndarray,
+                 order: np.ndarray) -> None:
+        self.blocks = blocks  # (first row, stop row, Q of the recording's local columns on its rows)
+        self.q_rest = q_rest  # (n, m_rest)
+        self.r = r
+        self.order = order
+        self.m = r.shape[0]
+        self.n_local = self.m - q_rest.shape[1]
+
+    @classmethod
+    def of(cls, E: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> _ExtraBasis | None:
+        """The basis of ``E`` (columns demeaned and scaled; rows experiment by experiment), None if rank-deficient."""
+        m = E.shape[1]
+        owner = np.full(m, -1)
+        for c in range(m):
+            nz = np.flatnonzero(E[:, c])
+            if nz.size:
+                g = int(np.searchsorted(stops, nz[0], side="right"))
+                if g < len(stops) and nz[-1] < stops[g]:
+                    owner[c] = g
+        rest = np.flatnonzero(owner < 0)
+        G = E[:, rest].copy()
+        blocks, order, r_blocks, c_blocks = [], [], [], []
+        for g in np.unique(owner[owner >= 0]):
+            a, b = int(starts[g]), int(stops[g])
+            cols = np.flatnonzero(owner == g)
+            if len(cols) > b - a:
+                return None
+            Qg, Rg = scipy.linalg.qr(E[a:b, cols], mode="economic", check_finite=False)
+            Cg = Qg.T @ G[a:b]
+            G[a:b] -= Qg @ Cg
+            blocks.append((a, b, Qg))
+            order += cols.tolist()
+            r_blocks.append(Rg)
+            c_blocks.append(Cg)
+        if len(rest) > G.shape[0]:
+            return None
+        Qr, Rr = (scipy.linalg.qr(G, mode="economic", check_finite=False) if len(rest)
+                  else (np.zeros((G.shape[0], 0)), np.zeros((0, 0))))
+        r = np.zeros((m, m))
+        k = 0
+        for Rg, Cg in zip(r_blocks, c_blocks, strict=True):
+            kg = Rg.shape[0]
+            r[k: k + kg, k: k + kg] = Rg
+            r[k: k + kg, m - len(rest):] = Cg
+            k += kg
+        r[k:, k:] = Rr
+        diag = np.abs(np.diag(r))
+        if not (diag.size and np.all(diag > 1e-10 * max(diag.max(), 1e-300))):
+            return None
+        return cls(blocks, Qr, r, np.array(order + rest.tolist(), dtype=int))
+
+    def qt(self, M: np.ndarray) -> np.ndarray:
+        """Q' M: the coordinates of ``M`` (n, ...) in the basis, in :attr:`order`."""
+        out = np.empty((self.m, *M.shape[1:]))
+        k = 0
+        for a, b, Qg in self.blocks:
+            out[k: k + Qg.shape[1]] = Qg.T @ M[a:b]
+            k += Qg.shape[1]
+        out[k:] = self.q_rest.T @ M
+        return out
+
+    def q(self, C: np.ndarray) -> np.ndarray:
+        """Q C: the combination ``C`` of the basis (rows in :attr:`order`) as columns over every row."""
+        out = self.q_rest @ C[self.n_local:]
+        k = 0
+        for a, b, Qg in self.blocks:
+            out[a:b] += Qg @ C[k: k + Qg.shape[1]]
+            k += Qg.shape[1]
+        return out
 
 
 class AxisProblem:
@@ -171,7 +259,7 @@ class AxisProblem:
         # of nuisance columns). Off by default: the same least squares, but its rounding differs, and a fit
         # from several starts over many paths can then settle in another local minimum (measured: diagnosis's
         # re-identification of z on room-recorded variant 2 moved its fresh-day RMS 4.7 -> 5.3 um)
-        self._extra_q: np.ndarray | None = None
+        self._extra_q: _ExtraBasis | None = None
         self._extra_cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         if self.extra.shape[1] and project_extra:
             E = self.demean(self.extra)
@@ -179,14 +267,14 @@ class AxisProblem:
             # columns that are zero where measured (a held-out recording's own nuisance, a constant absorbed by
             # its offset) are left out: their gains are 0, as the unprojected solve leaves them
             live = np.flatnonzero(escale > 0)
-            Qe, Re = scipy.linalg.qr(E[:, live] / escale[live], mode="economic", check_finite=False)
-            diag = np.abs(np.diag(Re))
-            if diag.size and np.all(diag > 1e-10 * max(diag.max(), 1e-300)):  # else solved with the paths
-                self._extra_q, self._extra_r, self._extra_scale = Qe, Re, escale[live]
-                self._extra_live = live
-                self._extra_means = self._group_means(self.extra[:, live])
-                self._qty_extra = Qe.T @ self.y_demeaned
-                self._y_projected = self.y_demeaned - Qe @ self._qty_extra
+            basis = _ExtraBasis.of(E[:, live] / escale[live], self._starts, self._stops)
+            if basis is not None:  # else (rank-deficient) solved with the paths
+                self._extra_q, self._extra_r = basis, basis.r
+                self._extra_live = live[basis.order]
+                self._extra_scale = escale[self._extra_live]
+                self._extra_means = self._group_means(self.extra[:, self._extra_live])
+                self._qty_extra = basis.qt(self.y_demeaned)
+                self._y_projected = self.y_demeaned - basis.q(self._qty_extra)
         # the racing restarts an optimizer where the last one stopped: its first residual and Jacobian
         # were computed at the end of the round before (a few entries, each a design matrix's worth)
         self._memo: OrderedDict[tuple, object] = OrderedDict()
@@ -273,7 +361,7 @@ class AxisProblem:
         """Demeaned columns ``m`` less their projection on the (demeaned) extra columns."""
         if self._extra_q is None:
             return m
-        return m - self._extra_q @ (self._extra_q.T @ m)
+        return m - self._extra_q.q(self._extra_q.qt(m))
 
     def solve(self, paths: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(path gains, extra gains, then per-experiment offsets; residual; Q of the demeaned columns).
@@ -295,7 +383,7 @@ class AxisProblem:
             # are the numbers the whole matrix gives (sums down each column of a matrix of two columns or more
             # run the same way however many columns there are); the QR below is the same factorisation
             Xp, means_p = self._demeaned(paths)
-            scale_p = np.linalg.norm(Xp, axis=0)
+            scale_p = _column_norms(Xp)
             scale_p[scale_p == 0] = 1.0
             es, scale_e, means_e = self._extra_scaled()
             Xs = np.empty((self.n, p + m), order="F")
@@ -305,7 +393,7 @@ class AxisProblem:
             means = np.concatenate([means_p, means_e], axis=1)
         else:
             X, means = self._demeaned(np.column_stack([paths, self.extra]) if m else paths)
-            scale = np.linalg.norm(X, axis=0)
+            scale = _column_norms(X)
             scale[scale == 0] = 1.0
             # scaled straight into LAPACK's column order, factorised in place (no copies; the same numbers)
             Xs = np.divide(X, scale, out=np.empty(X.shape, order="F"))
@@ -344,7 +432,7 @@ class AxisProblem:
         means = None
         if p:
             X, means = self._demeaned(paths)
-            scale = np.linalg.norm(X, axis=0)
+            scale = _column_norms(X)
             scale[scale == 0] = 1.0
             Xs = X / scale
             Q, R = scipy.linalg.qr(self.project_extra(Xs), mode="economic", check_finite=False)
@@ -356,7 +444,7 @@ class AxisProblem:
             else:
                 coef[keep] = np.linalg.lstsq(R[np.ix_(keep, keep)], qty[keep], rcond=None)[0]
             resid = y - Q @ qty
-            extra_rhs = self._qty_extra - self._extra_q.T @ (Xs @ coef)
+            extra_rhs = self._qty_extra - self._extra_q.qt(Xs @ coef)
             coef = coef / scale
         else:
             resid = y.copy()
