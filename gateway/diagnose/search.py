@@ -136,9 +136,19 @@ class SearchResult:
 
     trials: list[Trial]
     accepted: list[Trial]
-    held: dict[str, AxisHeld]
     terms: dict[str, list[Term]] = field(default_factory=dict)
     sse_rounds: dict[str, list[float]] = field(default_factory=dict)
+    #: what :attr:`held` is computed by, when first asked (a diagnosis itself does not ask: it is a refit per
+    #: block and axis, three times, about a second of a search on four days and the nine experiments)
+    held_of: Callable[[], dict[str, AxisHeld]] = field(default=dict, repr=False)
+    _held: dict[str, AxisHeld] | None = field(default=None, init=False, repr=False)
+
+    @property
+    def held(self) -> dict[str, AxisHeld]:
+        """Per axis, the held-out predictions of its residual (:class:`AxisHeld`)."""
+        if self._held is None:
+            self._held = self.held_of()
+        return self._held
 
 
 def without_path_corrections(h: Hypothesis) -> Hypothesis:
@@ -163,24 +173,15 @@ def setting_columns(stack: Stack, setting: Setting) -> tuple[list[np.ndarray], l
     return phys, nuis
 
 
-def _design(stack: Stack, setting: Setting, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _design(stack: Stack, setting: Setting) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """(the setting's regressors as stack-long columns, their signs, their limits)."""
     phys, nuis = setting_columns(stack, setting)
     cols = phys + nuis
-    # laid out a regressor to a row (the (n, p) design is its transpose, a view): grid_scores works on the rows,
-    # so each column is copied once, straight into place
-    XT = np.empty((len(cols), len(rows)))
-    every = len(rows) == stack.n  # every window measured: the columns as they are
-    for k, c in enumerate(cols):
-        if every:
-            XT[k] = c
-        else:
-            np.take(c, rows, out=XT[k])
-    X = XT.T
     signs = np.zeros(len(cols))
     signs[: len(setting.signs)] = setting.signs
     limits = np.full(len(cols), np.inf)
     limits[: len(setting.limits)] = setting.limits
-    return X, signs, limits
+    return cols, signs, limits
 
 
 @dataclass
@@ -315,9 +316,9 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
                 phys, nuis = setting_columns(stack, e.setting)
                 ax.fix([c[ax.rows] for c in phys + nuis])
         remaining = [h for h in remaining if h is not chosen.hypothesis]
-    held = {ax.name: _held(stack, ax, offsets, accepted) for ax in axes}
     terms = {ax.name: _final_terms(stack, ax, offsets, accepted) for ax in axes}
-    return SearchResult(trials=trials, accepted=accepted, held=held, terms=terms, sse_rounds=sse_rounds)
+    return SearchResult(trials=trials, accepted=accepted, terms=terms, sse_rounds=sse_rounds,
+                        held_of=lambda: {ax.name: _held(stack, ax, offsets, accepted) for ax in axes})
 
 
 def _held_check(stack: Stack, passing: Sequence[Trial], named: Sequence[Hypothesis], round_trials: Sequence[Trial],
@@ -443,8 +444,9 @@ def _evidence(stack: Stack, axes: Sequence[_Axis], h: Hypothesis,
         if scored is not None and key in scored:
             scores[ax.name] = scored[key]
             continue
-        designs = [_design(stack, s, ax.rows) for s in h.settings[ax.name]]
-        scores[ax.name] = grid_scores(ax.fold, [d[0] for d in designs], signs=[d[1] for d in designs],
+        # each regressor copied once, from its stack-long column straight into grid_scores' batch
+        designs = [_design(stack, s) for s in h.settings[ax.name]]
+        scores[ax.name] = grid_scores(ax.fold, [d[0] for d in designs], rows=ax.rows, signs=[d[1] for d in designs],
                                       limits=[d[2] for d in designs])
         if scored is not None:
             scored[key] = scores[ax.name]

@@ -272,13 +272,17 @@ def _quad(G: np.ndarray, h: np.ndarray, s: np.ndarray, beta: np.ndarray) -> np.n
     return s - 2 * np.einsum("...i,...i->...", beta, h) + np.einsum("...i,...ij,...j->...", beta, G, beta)
 
 
-def grid_scores(fold: Fold, designs: Sequence[np.ndarray], *, signs: Sequence[np.ndarray] | None = None,
-                limits: Sequence[np.ndarray] | None = None) -> GridScores:
+def grid_scores(fold: Fold, designs: Sequence[np.ndarray] | Sequence[Sequence[np.ndarray]], *,
+                signs: Sequence[np.ndarray] | None = None, limits: Sequence[np.ndarray] | None = None,
+                rows: np.ndarray | None = None) -> GridScores:
     """Score every grid setting (regressors ``designs[g]``, (n, p)) in every fold.
 
     ``signs[g]`` and ``limits[g]`` (one entry per regressor of setting g; sign 0 and limit inf: free) make a
     setting inadmissible in a fold whose fitted gains break them: plausibility is enforced inside every
     fold, not judged afterwards on all data.
+
+    ``rows`` (increasing): ``designs[g]`` is then setting g's regressors as longer columns (a sequence of 1-d
+    arrays) of which the fold's windows are ``rows``: each is copied once, straight into the batch scored.
     """
     n_grid = len(designs)
     k = fold.k
@@ -290,7 +294,7 @@ def grid_scores(fold: Fold, designs: Sequence[np.ndarray], *, signs: Sequence[np
     gains_a: list[np.ndarray] = [np.zeros(0)] * n_grid
     by_width: dict[int, list[int]] = {}
     for g, X in enumerate(designs):
-        by_width.setdefault(X.shape[1], []).append(g)
+        by_width.setdefault(len(X) if rows is not None else X.shape[1], []).append(g)
     for p, members in by_width.items():
         if p == 0:  # nothing but nuisance: the fixed fit itself
             train[members] = _quad(fs.FF_tr, fs.Fr_tr, fs.rr_tr, fs.b_tr)
@@ -305,7 +309,14 @@ def grid_scores(fold: Fold, designs: Sequence[np.ndarray], *, signs: Sequence[np
             # transposes of C-ordered (n, p) designs gives column-major rows: strided sums, 1.2x the time)
             XT = np.empty((len(idx) * p, len(fold.r)))
             for i, g in enumerate(idx):
-                XT[i * p: (i + 1) * p] = designs[g].T
+                if rows is None:
+                    XT[i * p: (i + 1) * p] = designs[g].T
+                    continue
+                for u, c in enumerate(designs[g]):
+                    if len(c) == len(rows):  # every window (``rows`` increasing): the column as it is
+                        XT[i * p + u] = c
+                    else:
+                        np.take(c, rows, out=XT[i * p + u])
             XF, XX, Xr, xs = _run_sums(fold, XT, p)
             bF, bX, bF1, bX1 = fs.solve(XF, XX, Xr)
             gf = np.swapaxes(bX, 0, 1) / xs[:, None, :]  # (G, K, p)
