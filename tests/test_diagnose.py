@@ -408,3 +408,13 @@ def test_grid_scores_are_those_of_a_fit_on_the_other_blocks():
     assert scores.gains_all[0][0] == pytest.approx(2.0, abs=0.05)
     assert np.all(np.isinf(scores.train[4]))  # -lag needs a negative gain: its sign rule fails in every fold
     assert np.all(np.isfinite(scores.train[:4]))
+    # the same designs given as longer columns and the rows of the fold: the same scores to the last bit, with
+    # every window and with a subset (the windows of a fold that leaves some out)
+    columns = [[lag], [wave], [lag, wave], [], [-lag]]
+    for rows in (np.arange(n), np.flatnonzero(t % 7 != 3)):
+        sub = Fold(r=r[rows], block=block[rows], fixed=fixed[rows])
+        by_rows = grid_scores(sub, columns, rows=rows, signs=signs)
+        plain = grid_scores(sub, [X[rows] for X in designs], signs=signs)
+        for name in ("train", "held", "full", "without"):
+            assert np.array_equal(getattr(by_rows, name), getattr(plain, name)), name
+        assert all(np.array_equal(a, b) for a, b in zip(by_rows.gains_fold, plain.gains_fold, strict=True))
