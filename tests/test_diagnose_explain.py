@@ -81,7 +81,7 @@ def test_without_a_slow_mode_nothing_explains_the_change(monkeypatch):
 def test_a_term_that_passes_only_beside_free_paths_is_not_taken(monkeypatch):
     # a 10 % bar lets nothing pass beside the free paths here; at 3 % eddy loss (speed^2 through the current's
     # path) passes there as a stand-in for the 24 h mode the bank of lags (up to the experiments' 12 h) lacks
-    options = Options(min_gain=0.03)
+    options = Options(min_gain=0.03, min_relevant_gain=0.03)
     d, _ = _diagnosed(monkeypatch, slow=True, options=options)
     refit = d.results["refit"]
     eddy = next(t for t in refit.trials if t.round == 1 and t.hypothesis.key == "eddy_loss:speed")
@@ -102,7 +102,7 @@ def test_an_extra_mode_the_identified_paths_do_not_need_is_not_taken(monkeypatch
     # beside the free paths (the bank's freedom); with the paths held they do not pass, and are not taken
     d, _ = _diagnosed(monkeypatch, slow=False)
     arts = {a: [s.column(d.stack) for s in f.steps] for a, f in d.findings.items()}
-    options = Options(min_gain=0.005)
+    options = Options(min_gain=0.005, min_relevant_gain=0.005)
     bank = path_corrections(d.stack, d.model)
     generic = [h for h in d.hypotheses if h.key in ("higher_order:i_sq", "dead_time:i_sq")]
     assert len(generic) == 2
@@ -165,3 +165,19 @@ def test_when_nothing_explains_the_change_the_report_says_how_near_the_closest_m
     assert {t["hypothesis"] for t in held} == tried
     assert doc["explanation"]["closest"][0]["hypothesis"] == best.key
     assert doc["explanation"]["verdict"] == ex.verdict
+
+
+def test_a_term_is_relevant_only_where_it_removes_a_quarter_of_the_error():
+    # beside refitted paths a large contribution can remove little: the paths trade against it. On the axis
+    # whose contribution is above the bound it must remove >= 25 % of the held-out squared error
+    from gateway.diagnose.search import _judge
+
+    without = [10.0] * 12
+    weak = _trial("slow", [0.85 * w for w in without], without)  # 15 % removed, contribution 10x the bound
+    verdict = _judge(weak, Options())
+    assert verdict.startswith("significant but on no axis relevant"), verdict
+    assert "(< 25 % where it is relevant)" in verdict
+    assert not weak.evidence["z"].included
+    strong = _trial("slow", [0.6 * w for w in without], without)  # 40 % removed
+    assert _judge(strong, Options()) == "passes"
+    assert strong.evidence["z"].included
