@@ -316,6 +316,10 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
         elif ex.named:
             out.append(f"what more data changed in the paths ({changed}) is explained by "
                        f"{'; '.join(t.hypothesis.title for t in ex.named)}: {ex.verdict}")
+        elif ex.written_unexplained:
+            out.append(f"more data changed the paths ({changed}); with the paths held at the identified time "
+                       f"constants, {'; '.join(t.hypothesis.title for t in physics)} does not explain all of it "
+                       f"({ex.verdict})")
         else:
             out.append(f"more data changed the paths ({changed}); no hypothesis explains the change with the paths "
                        f"held at the identified time constants ({ex.verdict}): no family is named")
