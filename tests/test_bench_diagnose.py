@@ -86,10 +86,11 @@ def test_the_sensor_step_is_in_one_experiment_and_two_days_never_the_fresh_day(b
 def test_accepted_names_are_read_from_the_written_model_info(bench, tmp_path):
     (tmp_path / "m.diagnosed.model.toml").write_text(
         '[info.diagnosis]\naccepted = ["dead_time:coolant:spindle_speed on y, z", "cabinet on z"]\n'
-        'artefacts_excluded = ["step on z at 3.00 h in day1"]\n')
+        'artefacts_excluded = ["step on z at 3.00 h in day1"]\nindistinguishable = ["cabinet ~ spindle_i1_sq"]\n')
     (tmp_path / "report.md").write_text("## Conclusions\n\n- nothing significant is missing: ...\n")
     names = bench.diagnosis_names(tmp_path)
     assert names.accepted == ["dead_time:coolant:spindle_speed on y, z", "cabinet on z"]
     assert names.artefacts == ["step on z at 3.00 h in day1"]
     assert names.nothing_missing
     assert [bench.family(n) for n in names.accepted] == ["dead_time", "cabinet"]
+    assert names.indistinguishable == ["cabinet ~ spindle_i1_sq"]
