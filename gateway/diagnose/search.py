@@ -42,8 +42,8 @@ class Options:
     min_gain: float = 0.1  # share of an axis's held-out squared error the hypothesis must remove
     #: ... and on the axis that makes it relevant (contribution above the bound): beside refitted paths a term's
     #: contribution is not what it adds (the paths trade against it), what it removes is. Measured on
-    #: bench/diagnose.py, plant variants 1-5: right names removed 33-99 % on that axis; terms accepted in
-    #: no-effect cases of unseen variants 4 and 5 that did not help a fresh day, 12-14 %
+    #: bench/diagnose.py, plant variants 1-5: right names removed 33-99 % on that axis; the slow modes that two
+    #: no-effect cases of variant 4 took without it, 12-14 % (on a fresh day one made y worse, one helped z little)
     min_relevant_gain: float = 0.25
     min_effect_share: float = 0.02  # its contribution's RMS, as a share of the largest peak |displacement|
     min_effect_um: float = 0.0  # ... and at least this many micrometres
