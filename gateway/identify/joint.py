@@ -309,6 +309,25 @@ class AxisProblem:
                 col[dest] = resp.ravel().take(src)
         return out
 
+    def path_design(self, structures: Sequence[str], thetas: Sequence[Sequence[float]]
+                    ) -> tuple[np.ndarray, list[list[np.ndarray]]]:
+        """(every path's :meth:`path_columns` side by side, (n, terms); per path its columns, views of it).
+
+        Written straight into place: the numbers of ``np.column_stack`` of the columns, without them.
+        """
+        widths = [n_linear(s) if s != "zero" else 0 for s in structures]
+        design = np.zeros((self.n, sum(widths)))
+        per_path: list[list[np.ndarray]] = []
+        k = 0
+        for j, s in enumerate(structures):
+            if widths[j]:
+                for du, src, dest, memo in self._moving[j]:
+                    for t, resp in enumerate(unit_responses(s, thetas[j], du, self.es.dt_s, memo=memo)):
+                        design[dest, k + t] = resp.ravel().take(src)
+            per_path.append([design[:, k + t] for t in range(widths[j])])
+            k += widths[j]
+        return design, per_path
+
     def path_difference(self, j: int, structure: str, theta: Sequence[float], moved: Sequence[float],
                         base: Sequence[np.ndarray], gains: Sequence[float], h: float, out: np.ndarray) -> None:
         """``out`` (zeros) := sum over the path's terms of (column at ``moved`` - ``base`` column) * gain / ``h``.
@@ -480,10 +499,8 @@ class AxisProblem:
         def compute(x: np.ndarray) -> tuple[list[np.ndarray], list[list[np.ndarray]], np.ndarray, np.ndarray,
                                             np.ndarray]:
             thetas = split(x)
-            per_path = [self.path_columns(j, s, thetas[j]) if s != "zero" else []
-                        for j, s in enumerate(structures)]
-            flat = [c for cols in per_path for c in cols]
-            coef, r, Q = self.solve(np.column_stack(flat) if flat else np.zeros((self.n, 0)))
+            design, per_path = self.path_design(structures, thetas)
+            coef, r, Q = self.solve(design)
             return thetas, per_path, coef, r, Q
 
         def residual(x: np.ndarray) -> np.ndarray:
@@ -495,15 +512,14 @@ class AxisProblem:
         def kaufman(x: np.ndarray) -> np.ndarray:
             thetas, per_path, coef, _, Q = evaluate(x)
             gains = _split(coef, [len(cols) for cols in per_path])
-            # column by column (Fortran order: each column contiguous); rows where the path's factor rests stay 0
-            V = np.zeros((self.n, x.size), order="F")
+            V = np.zeros((self.n, x.size))  # rows where the path's factor rests stay 0
             for q, j in enumerate(owner):
                 local = q - sum(sizes[:j])
                 h = 1e-6 * max(1.0, abs(thetas[j][local]))
                 th = thetas[j].copy()
                 th[local] += h
                 self.path_difference(j, structures[j], thetas[j], th, per_path[j], gains[j], h, V[:, q])
-            V = self.project_extra(self.demean(np.ascontiguousarray(V)))
+            V = self.project_extra(self.demean(V))
             return -(V - Q @ (Q.T @ V))
 
         nfev = 1
