@@ -292,7 +292,7 @@ def _eddy(ctx: _Ctx) -> list[Hypothesis]:
     out = []
     for n in (f for f in ctx.active if ctx.info[f].is_speed):
         sq = Product(name=safe_name(f"{n}_sq", ctx.taken()), of=(n, n), unit=f"({ctx.info[n].unit})^2",
-                     note=f"{n} squared: iron eddy-current loss ~ speed^2")
+                     note=f"{n} squared: iron eddy-current loss and viscous friction ~ speed^2")
         settings: dict[str, list[Setting]] = {}
         for a in ctx.axes:
             shapes = _motor_shapes(ctx, a, n)
@@ -304,10 +304,12 @@ def _eddy(ctx: _Ctx) -> list[Hypothesis]:
                         for t in log_grid(5 * ctx.dt, 12 * 3600.0, 4)]
             settings[a] = grid
         out.append(Hypothesis(
-            key=f"eddy_loss:{n}", family="eddy_loss", title=f"iron eddy-current loss ~ {n}^2",
+            key=f"eddy_loss:{n}", family="eddy_loss", title=f"heat ~ {n}^2 (iron eddy-current loss, viscous friction)",
             explanation=("Eddy currents in the motor's iron dissipate heat ~ speed^2 (hysteresis ~ speed is "
                          "already in the speed factor); the paper neglected it. The heat is made in the motor "
-                         "iron beside the stator winding, so it moves the tool as the motor current's heat does."),
+                         "iron beside the stator winding, so it moves the tool as the motor current's heat does. "
+                         "Viscous friction (bearing grease, air in the gap) also grows ~ speed^2 and heats the "
+                         "same parts: these signals do not tell the two apart."),
             settings=settings))
     return out
 
