@@ -199,3 +199,11 @@ def test_a_term_that_explains_less_than_all_is_still_written_when_it_predicts_si
     before = estimate(d.model, fresh).metrics["z"].rms_um
     after = estimate(d.comparison.written.model, fresh).metrics["z"].rms_um
     assert after < 0.5 * before, (before, after)
+    # the report says what is written and that it does not explain all the paths' change
+    from gateway.diagnose.api import conclusions
+
+    d.explanation, d.result = ex, ex.result
+    text = "\n".join(conclusions(d, d.block))
+    assert "missing physics: slow thermal mode" in text
+    assert "does not explain all of it" in text
+    assert "no family is named" not in text
