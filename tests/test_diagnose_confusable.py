@@ -85,3 +85,8 @@ def test_unexplained_share():
     assert unexplained_share(3.0 * np.sin(t) + 2.0, np.sin(t)) < 1e-12
     assert unexplained_share(np.sin(t), np.zeros_like(t)) == 1.0  # a flat factor carries nothing
     assert 0.45 < unexplained_share(np.sin(t) + np.cos(t), np.sin(t)) < 0.55
+    gap = np.sin(t)
+    gap[100:120] = np.nan  # an open gap counts for neither, never as "carried"
+    assert unexplained_share(3.0 * gap, np.sin(t)) < 1e-12
+    assert unexplained_share(np.cos(t), gap) > 0.5
+    assert unexplained_share(np.full_like(t, np.nan), np.sin(t)) == 1.0

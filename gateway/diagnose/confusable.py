@@ -54,9 +54,13 @@ class Confusion:
 
 
 def unexplained_share(u: np.ndarray, v: np.ndarray) -> float:
-    """Share of ``u``'s variance that ``v`` (scaled, with an offset) leaves unexplained; 1 when ``v`` is flat."""
-    u = u - u.mean()
-    v = v - v.mean()
+    """Share of ``u``'s variance that ``v`` (scaled, with an offset) leaves unexplained; 1 when ``v`` is flat.
+
+    Over the windows where both are finite (a gap left open by the gap policy counts for neither).
+    """
+    ok = np.isfinite(u) & np.isfinite(v)
+    u = u[ok] - u[ok].mean() if ok.any() else u[:0]
+    v = v[ok] - v[ok].mean() if ok.any() else v[:0]
     uu, vv = float(u @ u), float(v @ v)
     if vv <= 0.0 or uu <= 0.0:
         return 1.0
