@@ -45,12 +45,13 @@ class Confusion:
 
     def line(self, *, accepted: bool = False) -> str:
         """The report's sentence; ``accepted``: a term of its shape passed, but its name is not established."""
-        verdict = ("its name is not established (a term of its shape predicts better, but the data do not point "
-                   "to it rather than to that path)" if accepted else "these recordings cannot name it")
+        what = (f"it was taken for the shape of its response, not for its input, and a mode of that shape on the "
+                f"paths of {self.factor} would do the same, so its name is not established" if accepted else
+                f"another or a slower mode on the paths of {self.factor} does what it would, and no fit can tell "
+                "them apart, so these recordings cannot name it")
         return (f"{self.title}: on these recordings its input ({'; '.join(self.inputs)}) follows {self.factor} "
                 f"to all but {100 * self.unexplained:.2g} % of its variation (through a {LAG_S / 3600:g} h lag): "
-                f"another or a slower mode on the paths of {self.factor} does what it would, and no fit can tell "
-                f"them apart, so {verdict}; to tell them apart: {self.tell_apart}")
+                f"{what}; to tell them apart: {self.tell_apart}")
 
 
 def unexplained_share(u: np.ndarray, v: np.ndarray) -> float:
