@@ -70,7 +70,8 @@ def unexplained_share(u: np.ndarray, v: np.ndarray) -> float:
 
 def confusions(stack: Stack, hypotheses: Sequence[Hypothesis]) -> list[Confusion]:
     """The hypotheses whose every derived input one factor carries on ``stack``'s recordings (see module)."""
-    lagged = {f: stack.response(stack.du[f], lag(LAG_S)) for f in stack.factors}
+    through = lag(LAG_S)
+    lagged = {f: stack.response(stack.du[f], through) for f in stack.factors}
     out = []
     for h in hypotheses:
         if h.artefact or h.signal:
@@ -89,7 +90,7 @@ def confusions(stack: Stack, hypotheses: Sequence[Hypothesis]) -> list[Confusion
             continue
         worst, carrier = 0.0, ""
         for d, chain in inputs.items():
-            u = stack.response(stack.input_du(d.name, chain), lag(LAG_S))
+            u = stack.response(stack.input_du(d.name, chain), through)
             share, f = min(((unexplained_share(u, v), f) for f, v in lagged.items()), default=(1.0, ""))
             if share >= CONFUSED_SHARE or (carrier and f != carrier):
                 break

@@ -209,10 +209,8 @@ def explain(stack: Stack, model: ThermalModel, reid: Reidentified, comparison: C
         if cand.sse < reid_c.sse and p_reid < options.alpha:
             out.written_unexplained = True
             result.accepted = list(accepted)  # what is written is what the search's record says was taken
-            comparison.chosen = KEY
-            reid_c.verdict = reid_c.verdict.removesuffix("; written")
-            cand.verdict += (f"; predicts the held-out blocks significantly better than the re-identified model "
-                             f"(p = {p_reid:.2g}): written")
+            _write(comparison, cand, "predicts the held-out blocks significantly better than the re-identified "
+                   f"model (p = {p_reid:.2g})")
             out.verdict += (f"; but the model with it predicts the held-out blocks significantly better than the "
                             f"re-identified one (p = {p_reid:.2g}) and is written")
     else:
@@ -222,12 +220,18 @@ def explain(stack: Stack, model: ThermalModel, reid: Reidentified, comparison: C
                        f"held-out squared error (held {held_only.sse:.4g}, free {free.sse:.4g}, with it "
                        f"{cand.sse:.4g} um^2): it explains the change")
         if cand.sse <= reid_c.sse:
-            comparison.chosen = KEY
-            reid_c.verdict = reid_c.verdict.removesuffix("; written")
-            cand.verdict += "; named, and no worse than the re-identified model: written"
+            _write(comparison, cand, "named, and no worse than the re-identified model")
         else:
             cand.verdict += "; named; the re-identified model predicts better and is written"
     return out
+
+
+def _write(comparison: Comparison, cand: Candidate, why: str) -> None:
+    """``cand`` written instead of the re-identified model: the comparison's choice and both verdicts say so."""
+    comparison.chosen = KEY
+    reid = comparison.candidates["reidentified"]
+    reid.verdict = reid.verdict.removesuffix("; written")
+    cand.verdict += f"; {why}: written"
 
 
 #: how many of the named mechanisms nearest to passing with the paths held are scored and reported
