@@ -126,3 +126,28 @@ def test_a_bad_variant_is_refused_naming_the_key_or_option(tmp_path: Path, capsy
     assert f"{bad}:13: plant.variant: expected an integer >= 0, got -2 (an integer)" in str(err.value)
     assert main(["simulate", "record", "spindle-1000rpm", "-o", str(tmp_path), "--variant", "-1"]) == 2  # usage
     assert "--variant: expected an integer >= 0 (0: the nominal machine), got -1" in capsys.readouterr().err
+
+
+def test_viscous_drag_scale_takes_the_speed_squared_heat_and_drag_out(tmp_path: Path, capsys):
+    """``[plant] viscous_drag_scale``: the drag's torque (the currents) and its ~ speed^2 heat scale together."""
+    run = SHORT.replace("spindle_rpm = 1500", "spindle_rpm = 3000")
+    full = simulate(parse_scenario_text(run + "\n[plant]\nvariant = 2\n"))
+    low = simulate(parse_scenario_text(run + "\n[plant]\nvariant = 2\nviscous_drag_scale = 0.01\n"))
+    sp = full.machine.spindle
+    assert low.machine.spindle.viscous_nm_s == pytest.approx(0.01 * sp.viscous_nm_s)
+    for a in "xyz":
+        assert low.machine.axes[a].viscous_n_s_per_m == pytest.approx(0.01 * full.machine.axes[a].viscous_n_s_per_m)
+    at_speed = full.stats[:, 0] > 2990  # windows at a steady 3000 rpm
+    omega = 3000 * 2 * math.pi / 60
+    drop = (full.heat_w["spindle_friction"] - low.heat_w["spindle_friction"])[at_speed]
+    np.testing.assert_allclose(drop, 0.99 * sp.viscous_nm_s * omega**2, rtol=0.02)  # b w^2, 15-50 W
+    assert np.all(low.stats[at_speed, 1] < full.stats[at_speed, 1])  # less drag: less stator current^2
+    path = tmp_path / "low.toml"
+    path.write_text(run + "\n[plant]\nviscous_drag_scale = 0.01\n")
+    assert main(["simulate", "record", str(path), "-o", str(tmp_path / "o"), "--no-progress"]) == 0
+    assert "viscous drag x0.01" in capsys.readouterr().out
+    assert b"# plant_viscous_drag_scale: 0.01" in (tmp_path / "o" / "short.csv").read_bytes()
+    path.write_text(run + "\n[plant]\nviscous_drag_scale = 0\n")
+    with pytest.raises(SimulationError) as err:
+        load_scenario(path)
+    assert "viscous_drag_scale" in str(err.value) and "0.001" in str(err.value) and str(path) in str(err.value)

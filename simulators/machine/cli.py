@@ -81,6 +81,8 @@ def run_record(args: argparse.Namespace) -> int:
         from simulators.machine.variants import plant_variant
 
         print(plant_variant(scenario.variant).summary())
+    if scenario.viscous_drag_scale != 1.0:
+        print(f"viscous drag x{scenario.viscous_drag_scale:g} (spindle and feed axes: torque and heat)")
     return 0
 
 

@@ -45,7 +45,8 @@ class LiveMachine:
     def __init__(self, scenario: Scenario | str | Path, *, clock: Clock | None = None,
                  machine: MachineParams = DEFAULT_MACHINE) -> None:
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario, machine=machine)
-        machine = variant_machine(self.scenario.variant, machine)
+        machine = variant_machine(self.scenario.variant, machine,
+                                  viscous_drag_scale=self.scenario.viscous_drag_scale)
         self.machine = machine
         self.clock: Clock = clock if clock is not None else ManualClock()
         self._drives = compile_drives(self.scenario, machine)

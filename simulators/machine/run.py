@@ -171,6 +171,8 @@ def _meta(scenario: Scenario) -> dict[str, str]:
     out = {"scenario": scenario.name, "seed": str(scenario.seed)}
     if scenario.variant:
         out["plant_variant"] = str(scenario.variant)
+    if scenario.viscous_drag_scale != 1.0:
+        out["plant_viscous_drag_scale"] = f"{scenario.viscous_drag_scale:g}"
     return out
 
 
@@ -207,7 +209,7 @@ def simulate(scenario: Scenario, *, machine: MachineParams = DEFAULT_MACHINE, pr
     The scenario's plant variant (``[plant] variant``) is drawn from ``machine``; the result's ``machine``
     is the variant's.
     """
-    machine = variant_machine(scenario.variant, machine)
+    machine = variant_machine(scenario.variant, machine, viscous_drag_scale=scenario.viscous_drag_scale)
     dt = machine.window_s
     n_windows = round(scenario.duration_s / dt)
     time_s = dt * np.arange(1, n_windows + 1)

@@ -21,6 +21,7 @@ A scenario file::
     [plant]
     variant = 0                       # 0: the nominal machine; N > 0: gains and time constants perturbed
                                       # by seed N (simulators/machine/variants.py)
+    viscous_drag_scale = 1.0          # times every viscous drag (spindle and feed axes: torque and heat)
 
     [segments.run]                    # segments run in file order
     minutes = 60
@@ -107,6 +108,8 @@ class Scenario:
     start_time_s: float = 0.0
     #: plant variant (``[plant] variant``): 0 is the nominal machine (see :mod:`simulators.machine.variants`)
     variant: int = 0
+    #: ``[plant] viscous_drag_scale``: every viscous drag (its torque and its ~ speed^2 heat) times this
+    viscous_drag_scale: float = 1.0
 
     @property
     def duration_h(self) -> float:
@@ -178,10 +181,12 @@ def parse_scenario(doc: TomlDoc, *, machine: MachineParams = DEFAULT_MACHINE) ->
         noise_um = 0.1 if noise is None else noise
         sensors_t.done()
 
-    variant = 0
+    variant, viscous_drag_scale = 0, 1.0
     plant_t = root.table("plant")
     if plant_t is not None:
         variant = plant_t.int("variant", default=0, min=0) or 0
+        scale = plant_t.float("viscous_drag_scale", default=1.0, min=0.001, max=10.0)
+        viscous_drag_scale = 1.0 if scale is None else scale
         plant_t.done()
 
     t = (idle_min or 0.0) * 60.0
@@ -211,7 +216,8 @@ def parse_scenario(doc: TomlDoc, *, machine: MachineParams = DEFAULT_MACHINE) ->
     doc.raise_problems()
     return Scenario(name=name, description=description, source=str(doc.path), seed=seed,
                     duration_s=duration_s, initial_idle_s=(idle_min or 0.0) * 60.0, segments=tuple(segments),
-                    room=room, noise_um=noise_um, effects=effects, start_time_s=start_time, variant=variant)
+                    room=room, noise_um=noise_um, effects=effects, start_time_s=start_time, variant=variant,
+                    viscous_drag_scale=viscous_drag_scale)
 
 
 def _named_tables(root: Table, key: str) -> list[tuple[str, Table]]:

@@ -127,6 +127,22 @@ def plant_variant(variant: int, machine: MachineParams = DEFAULT_MACHINE) -> Pla
     return _nominal_variant(variant) if machine is DEFAULT_MACHINE else _variant(variant, machine)
 
 
-def variant_machine(variant: int, machine: MachineParams = DEFAULT_MACHINE) -> MachineParams:
-    """The machine of variant ``variant`` (``machine`` itself for 0)."""
-    return plant_variant(variant, machine).machine
+def variant_machine(variant: int, machine: MachineParams = DEFAULT_MACHINE, *,
+                    viscous_drag_scale: float = 1.0) -> MachineParams:
+    """The machine of variant ``variant`` (``machine`` itself for 0), every viscous drag times the scale.
+
+    ``viscous_drag_scale`` (``[plant] viscous_drag_scale``) multiplies the spindle's and every feed axis's
+    speed-proportional drag after the variant's draw: its torque (so the currents the CNC reports) and its
+    heat (~ speed^2, which no factor of a profile carries) together. A scale near 0 gives a plant whose heat
+    is linear in the speeds and the currents squared, which the identified model's structure describes
+    entirely (bench/diagnose.py measures false alarms on it).
+    """
+    out = plant_variant(variant, machine).machine
+    if viscous_drag_scale == 1.0:
+        return out
+    if not (math.isfinite(viscous_drag_scale) and viscous_drag_scale > 0):
+        raise ValueError(f"viscous drag scale must be a number > 0. Got {viscous_drag_scale!r}")
+    spindle = dataclasses.replace(out.spindle, viscous_nm_s=out.spindle.viscous_nm_s * viscous_drag_scale)
+    axes = MappingProxyType({a: dataclasses.replace(p, viscous_n_s_per_m=p.viscous_n_s_per_m * viscous_drag_scale)
+                             for a, p in out.axes.items()})
+    return dataclasses.replace(out, spindle=spindle, axes=axes)
