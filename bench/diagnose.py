@@ -167,10 +167,11 @@ EFFECTS: dict[str, Effect] = {
     "complete b": Effect({}, viscous_drag_scale=0.01, note="as complete, none b's schedules"),
 }
 #: families of the concealed effects: accepting one in a no-effect case is a false alarm
-CONCEALED = ("room", "disturbance", "daily", "eddy_loss", "slow_mode", "cabinet", "bearing_preload", "dead_time",
-             "chiller")
-#: the family of heat ~ spindle speed^2 (iron eddy loss, viscous friction): what the plant's own drag heat is
-SPEED_SQ = ("eddy_loss",)
+CONCEALED = ("room", "disturbance", "daily", "eddy_loss", "viscous_friction", "slow_mode", "cabinet", "bearing_preload",
+             "dead_time", "chiller")
+#: the families of heat ~ spindle speed^2: what the plant's own drag heat is (in the bearings: viscous friction,
+#: where it is; in the motor: eddy loss, the right law in another place)
+SPEED_SQ = ("viscous_friction", "eddy_loss")
 QUICK_CASES = ("room not recorded", "eddy loss", "coolant dead time", "sensor step", "none")
 
 
@@ -683,10 +684,11 @@ def summary(verdicts: list[Verdict], *, protocol: str) -> list[str]:
     if none:
         speed2 = [v for v in none if v.concealed and all(is_family(n, SPEED_SQ) for n in v.concealed)]
         other = [v for v in none if v.concealed and v not in speed2]
+        viscous = [v for v in speed2 if any(is_family(n, SPEED_SQ[:1]) for n in v.concealed)]
         out.append(f"no-effect cases on the plant as it is (its viscous drag heat ~ speed^2 is in no factor): "
                    f"accepting no concealed-effect family {len(none) - len(speed2) - len(other)}/{len(none)}, "
-                   f"heat ~ speed^2 (what is there) {len(speed2)}/{len(none)}, another family {len(other)}/{len(none)}"
-                   + _hits(speed2 + other))
+                   f"heat ~ speed^2 (what is there) {len(speed2)}/{len(none)} ({len(viscous)} as viscous friction "
+                   f"in the bearings, where it is), another family {len(other)}/{len(none)}" + _hits(speed2 + other))
     unfit = [v for v in rows if v.unfit]
     bad = [v.row.label for v in unfit if v.row.nothing_missing]
     out.append(f"baseline unfit on the days diagnosed (max error against the truth > {UNFIT_PCT:.0f} % of a true "

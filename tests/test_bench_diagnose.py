@@ -101,8 +101,10 @@ def test_the_model_complete_cases_are_the_no_effect_recordings_with_the_drag_hea
         plan, none = _parse(bench.new_plan(name, 5)), _parse(bench.new_plan(ref, 5))
         assert plan.keys() == none.keys()
         for rec, sc in plan.items():  # every recording, experiments included; schedules and noise the same
-            assert sc.viscous_drag_scale == 0.01 and none[rec].viscous_drag_scale == 1.0, rec
+            assert sc.viscous_drag_scale == 0.01, rec
+            assert none[rec].viscous_drag_scale == 1.0, rec
             assert dataclasses.replace(sc, viscous_drag_scale=1.0) == none[rec], rec
-    assert bench.EFFECTS["complete"].complete and not bench.EFFECTS["none"].complete
+    assert bench.EFFECTS["complete"].complete
+    assert not bench.EFFECTS["none"].complete
     old = _parse(bench.old_plan("complete b", 1))
     assert {sc.viscous_drag_scale for sc in old.values()} == {0.01}

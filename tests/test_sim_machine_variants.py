@@ -150,4 +150,5 @@ def test_viscous_drag_scale_takes_the_speed_squared_heat_and_drag_out(tmp_path: 
     path.write_text(run + "\n[plant]\nviscous_drag_scale = 0\n")
     with pytest.raises(SimulationError) as err:
         load_scenario(path)
-    assert "viscous_drag_scale" in str(err.value) and "0.001" in str(err.value) and str(path) in str(err.value)
+    assert "plant.viscous_drag_scale: expected a number in [0.001, 10], got 0 (an integer)" in str(err.value)
+    assert str(err.value).startswith(f"{path}:")
