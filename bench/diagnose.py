@@ -129,7 +129,7 @@ class Effect:
 
     @property
     def none(self) -> bool:
-        return not self.tables and not self.step
+        return not self.tables and not self.step and self.viscous_drag_scale <= 1.0
 
     @property
     def complete(self) -> bool:
@@ -156,6 +156,8 @@ EFFECTS: dict[str, Effect] = {
                                 note="half the motor heat to a tank on the column, 90 min later"),
     "chiller": Effect({"chiller": {"conductance_w_per_k": 15.0}}, ("chiller",), truth="chiller",
                       note="chiller on the stator while the spindle runs"),
+    "viscous drag": Effect({}, ("viscous_friction",), viscous_drag_scale=4.0,
+                           note="every viscous drag x4: bearing heat ~ speed^2, 120 W at 3000 rpm, 12 W at 1000"),
     "sensor step": Effect({}, (), step=True, note="2 um knocks on z (2 production days, 1 experiment)"),
     "none": Effect({}, note="no effect: the reference of its variant"),
     "none b": Effect({}, note="no effect, other schedules"),
