@@ -122,11 +122,14 @@ def test_a_slow_mode_beyond_the_identification_runs_is_named(bench, baseline):
     assert fresh_rms(d.extended, fresh) < 0.7 * fresh_rms(baseline, fresh)
 
 
-def test_viscous_friction_is_named_as_heat_the_speed_squared_makes(bench, baseline):
-    """Viscous drag x4 (120 W at 3000 rpm, beyond the identification's 1000 rpm): heat ~ speed^2."""
+def test_viscous_drag_heat_is_taken_for_heat_that_grows_with_speed(bench, baseline):
+    """Viscous drag x4 (120 W at 3000 rpm, beyond the identification's 1000 rpm): heat ~ speed^2 in the
+    bearings. Named as heat ~ speed^2 or as bearing friction growing with heat (preload with a lag of a
+    window or two is speed times speed: these recordings do not tell them apart), and the model written
+    with it predicts a day diagnosis never saw with at most half the error."""
     seen, fresh = old_case(bench, "viscous drag", days=4)
     d = diagnose(baseline, [seen], factors=factor_infos(load_profile(SIM_PROFILE)))
-    assert d.accepted_physics[0] == "eddy_loss:spindle_speed"
+    assert d.accepted_physics[0] in ("eddy_loss:spindle_speed", "bearing_preload:spindle_speed")
     assert fresh_rms(d.extended, fresh) < 0.5 * fresh_rms(baseline, fresh)
 
 

@@ -7,10 +7,9 @@ becomes derived inputs and path terms (:mod:`gateway.diagnose.extend`).
 
 Where the physics says WHERE a missing heat source sits, the hypothesis reuses the identified path of the
 heat already known to be there, with one gain: iron eddy loss is generated in the motor iron beside the
-stator copper, so it moves the tool as the stator current's heat does (viscous friction, also ~ speed^2,
-is made in the bearings: the same hypothesis with the speed's path shape); extra bearing friction from
-thermal preload moves it as the speed's (bearing friction) heat does. One gain instead of a free path makes
-these hypotheses cheap to test and tells them apart by their dynamics.
+stator copper, so it moves the tool as the stator current's heat does; extra bearing friction from thermal
+preload moves it as the speed's (bearing friction) heat does. One gain instead of a free path makes these
+hypotheses cheap to test and tells them apart by their dynamics.
 
 Measurement artefacts (a sensor's drift) are hypotheses too, flagged ``artefact``: they enter the fits as
 nuisance columns and never the model.
@@ -290,34 +289,27 @@ def _motor_shapes(ctx: _Ctx, axis: str, speed: str, *, stator_only: bool = False
 
 
 def _eddy(ctx: _Ctx) -> list[Hypothesis]:
-    """Heat ~ speed^2, in the motor or in the bearings: the fit chooses.
-
-    In the motor (iron eddy loss): a motor current's path shape; in the bearings (viscous friction): the
-    speed's own path shape, where the bearing friction heat is.
-    """
     out = []
     for n in (f for f in ctx.active if ctx.info[f].is_speed):
         sq = Product(name=safe_name(f"{n}_sq", ctx.taken()), of=(n, n), unit=f"({ctx.info[n].unit})^2",
                      note=f"{n} squared: iron eddy-current loss and viscous friction ~ speed^2")
         settings: dict[str, list[Setting]] = {}
         for a in ctx.axes:
-            shapes = _motor_shapes(ctx, a, n) + ([n] if ctx.base_terms(a, n) else [])
+            shapes = _motor_shapes(ctx, a, n)
             grid = [Setting(params=(("path_shape", f),), chain=(sq,),
                             components=(Component((Part(sq.name, ctx.base_terms(a, f)),), f"as {f}"),), signs=(1,))
                     for f in shapes]
-            if not shapes:  # no path of the spindle on this axis: a free lag
+            if not shapes:  # no motor path on this axis: a free lag
                 grid = [Setting(params=(("tau_s", t),), chain=(sq,), components=(Component((Part(sq.name, lag(t)),)),))
                         for t in log_grid(5 * ctx.dt, 12 * 3600.0, 4)]
             settings[a] = grid
         out.append(Hypothesis(
-            key=f"eddy_loss:{n}", family="eddy_loss",
-            title=f"heat ~ {n}^2 (iron eddy-current loss in the motor, viscous friction in the bearings)",
-            explanation=("Two losses grow ~ speed^2 beside those ~ speed the speed factor carries: eddy currents "
-                         "in the motor's iron, made beside the stator winding (they move the tool as the motor "
-                         "current's heat does), and viscous friction in the bearings (lubricant churning, oil-air "
-                         "and seal drag), made where the bearing friction is (they move it as the speed's heat "
-                         f"does). The fit places the heat: path shape {n} is the bearings, a motor current's "
-                         "the motor. Identification runs at low speeds hardly see either."),
+            key=f"eddy_loss:{n}", family="eddy_loss", title=f"heat ~ {n}^2 (iron eddy-current loss, viscous friction)",
+            explanation=("Eddy currents in the motor's iron dissipate heat ~ speed^2 (hysteresis ~ speed is "
+                         "already in the speed factor); the paper neglected it. The heat is made in the motor "
+                         "iron beside the stator winding, so it moves the tool as the motor current's heat does. "
+                         "Viscous friction (bearing grease, air in the gap) also grows ~ speed^2 and heats the "
+                         "same parts: these signals do not tell the two apart."),
             settings=settings))
     return out
 
