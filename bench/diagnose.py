@@ -316,7 +316,10 @@ def new_plan(effect_name: str, variant: int) -> Plan:
 
 
 def old_plan(effect_name: str, seed: int) -> Plan:
-    """The old protocol: clean experiments on the nominal machine, the effect in one 4-day recording only."""
+    """The old protocol: clean experiments on the nominal machine, the effect in one 4-day recording only.
+
+    A case's viscous drag scale (the complete and viscous drag cases) is the plant's: experiments included.
+    """
     effect = EFFECTS[effect_name]
     drag = {"plant": {"viscous_drag_scale": effect.viscous_drag_scale}} if effect.viscous_drag_scale != 1.0 else {}
     exps = {}
