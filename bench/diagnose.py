@@ -132,6 +132,11 @@ class Effect:
         return not self.tables and not self.step and self.viscous_drag_scale <= 1.0
 
     @property
+    def plant(self) -> dict:
+        """Its ``[plant]`` keys besides the variant (the drag scale when it is not the plant's own)."""
+        return {"viscous_drag_scale": self.viscous_drag_scale} if self.viscous_drag_scale != 1.0 else {}
+
+    @property
     def complete(self) -> bool:
         """A no-effect case whose plant the model's structure describes: no ~ speed^2 drag heat."""
         return self.none and self.viscous_drag_scale < 0.1
@@ -274,9 +279,7 @@ def new_plan(effect_name: str, variant: int) -> Plan:
     base = 20.0 + weather if effect.tables.get("room_cycle") else np.full(32, 20.0)
 
     def plant(doc: dict) -> dict:
-        doc["plant"] = {"variant": variant}
-        if effect.viscous_drag_scale != 1.0:
-            doc["plant"]["viscous_drag_scale"] = effect.viscous_drag_scale
+        doc["plant"] = {"variant": variant, **effect.plant}
         return doc
 
     exps = {}
@@ -321,7 +324,7 @@ def old_plan(effect_name: str, seed: int) -> Plan:
     A case's viscous drag scale (the complete and viscous drag cases) is the plant's: experiments included.
     """
     effect = EFFECTS[effect_name]
-    drag = {"plant": {"viscous_drag_scale": effect.viscous_drag_scale}} if effect.viscous_drag_scale != 1.0 else {}
+    drag = {"plant": effect.plant} if effect.plant else {}
     exps = {}
     for k, name in enumerate(IDENTIFICATION_SCENARIOS):
         doc = tomllib.loads((SCENARIOS / f"{name}.toml").read_text())

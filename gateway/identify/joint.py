@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -300,13 +300,21 @@ class AxisProblem:
             self._moving.append(groups)
 
     # -- the design matrix and the projected residual --------------------------------------------------
-    def path_columns(self, j: int, structure: str, theta: Sequence[float]) -> list[np.ndarray]:
-        # a factor moves in a few experiments only; its response is exactly zero in the others (inputs are
-        # deviations from rest), so only those are filtered
-        out = [np.zeros(self.n) for _ in range(n_linear(structure))]
+    def _responses(self, j: int, structure: str, theta: Sequence[float]
+                   ) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+        """(term, rows, values) of path ``j``'s columns on the experiments in which its factor moves.
+
+        A factor moves in a few experiments only; its response is exactly zero in the others (inputs are
+        deviations from rest), so only those are filtered.
+        """
         for du, src, dest, memo in self._moving[j]:
-            for col, resp in zip(out, unit_responses(structure, theta, du, self.es.dt_s, memo=memo), strict=True):
-                col[dest] = resp.ravel().take(src)
+            for t, resp in enumerate(unit_responses(structure, theta, du, self.es.dt_s, memo=memo)):
+                yield t, dest, resp.ravel().take(src)
+
+    def path_columns(self, j: int, structure: str, theta: Sequence[float]) -> list[np.ndarray]:
+        out = [np.zeros(self.n) for _ in range(n_linear(structure))]
+        for t, dest, values in self._responses(j, structure, theta):
+            out[t][dest] = values
         return out
 
     def path_design(self, structures: Sequence[str], thetas: Sequence[Sequence[float]]
@@ -321,9 +329,8 @@ class AxisProblem:
         k = 0
         for j, s in enumerate(structures):
             if widths[j]:
-                for du, src, dest, memo in self._moving[j]:
-                    for t, resp in enumerate(unit_responses(s, thetas[j], du, self.es.dt_s, memo=memo)):
-                        design[dest, k + t] = resp.ravel().take(src)
+                for t, dest, values in self._responses(j, s, thetas[j]):
+                    design[dest, k + t] = values
             per_path.append([design[:, k + t] for t in range(widths[j])])
             k += widths[j]
         return design, per_path
