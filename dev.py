@@ -2,8 +2,9 @@
 """Set up a local virtualenv and run the project's two jobs.
 
     python3 dev.py demo     the main job: the demo against the bundled simulators
-    python3 dev.py test     the whole test suite (ruff, then pytest on 2 cores; then the numeric tests
-                            again under another OpenBLAS kernel, as on another CPU); each phase's time
+    python3 dev.py test     the whole test suite (ruff, then pytest on 2 cores; the tests that sample on
+                            wall time after it, alone; then the numeric tests again under another
+                            OpenBLAS kernel, as on another CPU); each phase's time
     python3 dev.py lock     re-resolve constraints.txt to the newest versions pyproject.toml allows
                             (pip-tools, in .venv-lock); ``lock -P numpy`` upgrades one package only
 
@@ -98,17 +99,21 @@ def main(argv: list[str]) -> int:
     if job == "demo":
         return subprocess.call([str(BIN / "cncgw"), "demo", *rest])
     lint = _timed("ruff", [str(PY), "-m", "ruff", "check", "gateway", "drivers", "simulators", "tests", "bench"])
-    # the whole suite on every core (up to WORKERS); a selection as asked, in one process
-    workers = ["-n", str(WORKERS)] if not rest and WORKERS > 1 else []
-    tests = _timed("pytest", [str(PY), "-m", "pytest", *workers, *rest])
-    other_cpu = 0
-    if not rest:
-        # fits and filters again on another CPU's arithmetic (another OpenBLAS kernel): what a user on
-        # other hardware gets must pass the same physical tolerances, not only this machine's digits
-        print(f"dev.py: the numeric tests again with OPENBLAS_CORETYPE={OTHER_KERNEL}", flush=True)
-        other_cpu = _timed("numeric again", [str(PY), "-m", "pytest", "-q", *workers, "-m", "numeric and not plumbing"],
-                           env={**os.environ, "OPENBLAS_CORETYPE": OTHER_KERNEL})
-    return lint or tests or other_cpu
+    if rest:  # a selection as asked, in one process
+        return lint or _timed("pytest", [str(PY), "-m", "pytest", *rest])
+    # the whole suite on every core (up to WORKERS), but the tests that sample on wall time (marked
+    # ``realtime`` in tests/conftest.py): those after it in one process, alone on the PC. Under xdist each of
+    # them waited for the other worker's test to end (a fit of up to 20 s) with its own worker idle, and ran
+    # beside that worker's live module fixtures
+    workers = ["-n", str(WORKERS)] if WORKERS > 1 else []
+    tests = _timed("pytest", [str(PY), "-m", "pytest", *workers, "-m", "not realtime"])
+    realtime = _timed("pytest realtime", [str(PY), "-m", "pytest", "-q", "-m", "realtime"])
+    # fits and filters again on another CPU's arithmetic (another OpenBLAS kernel): what a user on other
+    # hardware gets must pass the same physical tolerances, not only this machine's digits
+    print(f"dev.py: the numeric tests again with OPENBLAS_CORETYPE={OTHER_KERNEL}", flush=True)
+    other_cpu = _timed("numeric again", [str(PY), "-m", "pytest", "-q", *workers, "-m", "numeric and not plumbing"],
+                       env={**os.environ, "OPENBLAS_CORETYPE": OTHER_KERNEL})
+    return lint or tests or realtime or other_cpu
 
 
 def _timed(what: str, cmd: list[str], **kw) -> int:

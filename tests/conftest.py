@@ -25,8 +25,8 @@ __all__ = ["PROFILES", "ROOT", "SHARED_DATA"]
 #: seen with 2 workers: test_drivers_opcua read a value more than 6 clock-s old at 60x). module -> test
 #: names (a prefix of the id), or None: every test of the module
 REALTIME: dict[str, tuple[str, ...] | None] = {
-    "test_sampler.py": None,
-    "test_sampler_bursts.py": None,
+    # not the 2 ms factors nor the bursts: those step a ManualClock in lock-step with the devices
+    "test_sampler.py": ("test_a_slow_device_skips_ticks", "test_a_device_dropped_mid_window"),
     "test_drivers_opcua.py": None,
     "test_link_budget_tcp.py": None,
     "test_record_store.py": ("test_cncgw_record_records_live_devices", "test_kill_9_while_recording"),
@@ -39,6 +39,7 @@ def pytest_configure(config):
     config.addinivalue_line("markers", "realtime: samples on wall time; under pytest-xdist it runs alone (conftest)")
 
 
+@pytest.hookimpl(tryfirst=True)  # before ``-m realtime`` / ``-m "not realtime"`` selects on it
 def pytest_collection_modifyitems(items):
     for item in items:
         names = REALTIME.get(item.path.name, ())

@@ -37,11 +37,15 @@ def audited(data_dir):
         log.close()
 
 
-def windows_logged(proc, n, timeout_s=60.0):
-    """Read the child's JSON log until ``n`` window lines came; return them."""
+def windows_logged(proc, n, timeout_s=60.0, *, until=None, most=None):
+    """Read the child's JSON log until ``n`` window lines came, and then until ``until(last window)`` holds
+    (at most ``most`` windows); return them. A loaded PC can starve a window's sampling (the writer then holds
+    the offsets for that window): a test that needs a write waits a few windows more, not a fixed count."""
     got = []
     deadline = time.monotonic() + timeout_s
-    while len(got) < n and time.monotonic() < deadline:
+    while time.monotonic() < deadline:
+        if len(got) >= n and (until is None or until(got[-1]) or len(got) >= (most or n)):
+            break
         line = proc.stderr.readline()
         if not line:
             break
@@ -53,6 +57,13 @@ def windows_logged(proc, n, timeout_s=60.0):
         if entry.get("event") == "window":
             got.append(entry)
     return got
+
+
+def _shown(windows):
+    """The windows as a failure message shows them: what the estimate was, what was written and why not."""
+    return "\n".join(f"window {w['window']}: usable {w['usable']}, coverage {w['coverage']:.2f}, estimate z "
+                     f"{w['estimate_um']['z']:+.2f}, offsets z {w['offsets_um']['z']:+.2f}, alarms {w['alarms']}"
+                     for w in windows)
 
 
 def stop(proc, sig):
@@ -79,11 +90,13 @@ def test_kill_9_and_restart(tmp_path):
                "--speedup", "60", "--no-opcua", "--log-format", "json"]
         first = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         try:
-            before = windows_logged(first, 4)
+            # until the CNC applies the spindle's growth (three windows on a quiet PC)
+            before = windows_logged(first, 4, until=lambda w: w["offsets_um"]["z"] > 1.0, most=15)
         finally:
             stop(first, signal.SIGKILL)
         assert first.returncode == -signal.SIGKILL
-        assert len(before) == 4
+        assert len(before) >= 4
+        assert before[-1]["offsets_um"]["z"] > 1.0, _shown(before)  # compensating the spindle's growth
         with RecordStore(data / STORE_NAME) as store:
             assert store.check() == "ok"
             kept = [r.index for r in store.windows()]
@@ -91,15 +104,17 @@ def test_kill_9_and_restart(tmp_path):
         assert [w["window"] for w in before] == kept[: len(before)]
         second = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         try:
-            after = windows_logged(second, 3)
+            # until it writes again (past the window it joins part-way and a starved one or two)
+            after = windows_logged(second, 3, until=lambda w: w["offsets_um"]["z"] > before[-1]["offsets_um"]["z"],
+                                   most=15)
         finally:
             stop(second, signal.SIGTERM)
         assert second.returncode == 0
         status = devices.cnc.update()
-    assert len(after) == 3
+    assert len(after) >= 3
     assert status.trips == 0
     assert status.enabled
-    assert status.applied_um["z"] > 1.0  # compensating the spindle's growth
+    assert status.applied_um["z"] > before[-1]["offsets_um"]["z"], _shown(before + after)  # still compensating
     with RecordStore(data / STORE_NAME) as store:
         indices = [r.index for r in store.windows()]
     assert indices[: len(kept)] == kept  # nothing recorded before the kill was lost
