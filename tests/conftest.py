@@ -1,7 +1,7 @@
 """Shared fixtures. Every test runs under a leak check: a test that leaves a thread running fails.
 
-Under pytest-xdist (``dev.py test`` runs 2 workers) a test that samples on wall time runs alone: see
-``REALTIME``.
+A test that samples on wall time runs alone: ``dev.py test`` runs them (marked ``realtime``, see ``REALTIME``)
+in a process of their own after the 2 pytest-xdist workers; under xdist anyway each waits for the others.
 """
 
 from __future__ import annotations
