@@ -199,7 +199,8 @@ def test_a_device_dropped_mid_window_is_reported_and_recovered_while_the_other_k
     assert worst.channels["x_velocity"].coverage > 0.9
     assert worst.devices["can"].reads_ok >= 0.9 * worst.devices["can"].ticks_expected
     # and the board is back: the last windows are good, with both devices in them
-    assert records[-1].status == "good"
+    shown = [(r.index, r.status, f"coverage {r.coverage:.2f}", r.devices_in_error) for r in records]
+    assert records[-1].status == "good", shown  # on a PC too loaded for 60x every window is "insufficient"
     assert records[-1].devices_in_error == ()
     assert status["adc"].recoveries >= 1
     assert [r.index for r in records] == list(range(records[0].index, records[-1].index + 1))
