@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/diagnose.py [--quick] [--cases a,b,...] [--variants 1,2,3] [--jobs N]
                                        [--report DIR] [--protocol new|old|both] [--seen all|days] [--no-real]
-                                       [--cache DIR]
+                                       [--cache DIR] [--blocks K]
 
 Only what a user has is used: the ``cncgw`` commands, run in this process through ``gateway.cli.main``
 (``simulate record``, ``identify``, ``diagnose``, ``estimate --json``), so the bench keeps working while
@@ -525,7 +525,7 @@ def _pooled(d: dict[str, float]) -> float:
 
 
 def run_bench_case(protocol: str, effect_name: str, variant: int, cache: Path, report: Path | None,
-             seen_days_only: bool = False) -> Row:
+             seen_days_only: bool = False, blocks: int | None = None) -> Row:
     """Simulate (cached), identify, diagnose (timed) and score one case through the command line."""
     row = Row(protocol=protocol, effect=effect_name, variant=variant)
     effect = EFFECTS[effect_name]
@@ -543,7 +543,8 @@ def run_bench_case(protocol: str, effect_name: str, variant: int, cache: Path, r
             row.identify_s = time.perf_counter() - t0
             seen = [*exps, *days] if protocol == "new" and not seen_days_only else days
             t0, c0 = time.perf_counter(), time.process_time()
-            run_cli(["diagnose", "--profile", PROFILE, "--model", model, *seen, "-o", out, "--force"])
+            run_cli(["diagnose", "--profile", PROFILE, "--model", model, *seen, "-o", out, "--force",
+                     *(["--blocks", str(blocks)] if blocks else [])])
             row.diagnose_s, row.diagnose_cpu_s = time.perf_counter() - t0, time.process_time() - c0
             names = diagnosis_names(out)
             row.accepted, row.artefacts, row.names_from = names.accepted, names.artefacts, names.source
@@ -851,6 +852,7 @@ def main() -> int:
     ap.add_argument("--jobs", type=int, default=1, help="cases in N processes at once (default 1)")
     ap.add_argument("--report", help="write per-case diagnosis reports, summary.md and fresh_rms.png here")
     ap.add_argument("--no-real", action="store_true", help="skip the ACE lathe and SJTU spindle")
+    ap.add_argument("--blocks", type=int, help="held-out blocks passed to cncgw diagnose (default: its own)")
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "cncgw-bench" / "diagnose"),
                     help="recordings cache (default ~/.cache/cncgw-bench/diagnose)")
     args = ap.parse_args()
@@ -870,7 +872,7 @@ def main() -> int:
         wanted = list(names)
         if "none" not in wanted:  # the reference of every variant
             wanted.append("none")
-        tasks += [(protocol, n, i, cache, report, args.seen == "days") for i in ids for n in wanted]
+        tasks += [(protocol, n, i, cache, report, args.seen == "days", args.blocks) for i in ids for n in wanted]
     print(f"{len(tasks)} cases ({', '.join(protocols)} protocol), {args.jobs} process(es); BLAS threads "
           f"{os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}; cache {cache}", flush=True)
     rows: list[Row] = []
