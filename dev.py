@@ -99,14 +99,14 @@ def main(argv: list[str]) -> int:
     if job == "demo":
         return subprocess.call([str(BIN / "cncgw"), "demo", *rest])
     lint = _timed("ruff", [str(PY), "-m", "ruff", "check", "gateway", "drivers", "simulators", "tests", "bench"])
+    env = _bytecode_cached()
     if rest:  # a selection as asked, in one process
-        return lint or _timed("pytest", [str(PY), "-m", "pytest", *rest], env=_bytecode_cached())
+        return lint or _timed("pytest", [str(PY), "-m", "pytest", *rest], env=env)
     # the whole suite on every core (up to WORKERS), but the tests that sample on wall time (marked
     # ``realtime`` in tests/conftest.py): those after it in one process, alone on the PC. Under xdist each of
     # them waited for the other worker's test to end (a fit of up to 20 s) with its own worker idle, and ran
     # beside that worker's live module fixtures
     workers = ["-n", str(WORKERS)] if WORKERS > 1 else []
-    env = _bytecode_cached()
     tests = _timed("pytest", [str(PY), "-m", "pytest", *workers, "-m", "not realtime"], env=env)
     realtime = _timed("pytest realtime", [str(PY), "-m", "pytest", "-q", "-m", "realtime"], env=env)
     # fits and filters again on another CPU's arithmetic (another OpenBLAS kernel): what a user on other

@@ -26,7 +26,7 @@ from simulators.closed_loop import closed_loop_errors, live_profile
 from simulators.devices import DeviceSetConfig, serve
 from simulators.machine import LiveMachine
 
-PERIOD_S = 2.19  # the ADC board's period: 3 x 0.73 s, off the table's strokes and cheaper (a third of the reads)
+PERIOD_S = 2.19  # the ADC board's period: 3 x the earlier 0.73 s, a third of the reads over the same hours
 MAX_STEP_UM = 5.0
 ONLY_ADC_AND_CNC = {"adc_rtu": None, "can": None, "dcon": None}
 
