@@ -295,11 +295,13 @@ def _eddy(ctx: _Ctx) -> list[Hypothesis]:
                      note=f"{n} squared: iron eddy-current loss and viscous friction ~ speed^2")
         settings: dict[str, list[Setting]] = {}
         for a in ctx.axes:
-            shapes = _motor_shapes(ctx, a, n)
+            # in the motor's iron (eddy loss: where the motor current's heat acts) or in the bearings
+            # (viscous friction: where the speed's own friction heat acts)
+            shapes = [*_motor_shapes(ctx, a, n), *([n] if ctx.base_terms(a, n) else [])]
             grid = [Setting(params=(("path_shape", f),), chain=(sq,),
                             components=(Component((Part(sq.name, ctx.base_terms(a, f)),), f"as {f}"),), signs=(1,))
                     for f in shapes]
-            if not shapes:  # no motor path on this axis: a free lag
+            if not shapes:  # no motor or speed path on this axis: a free lag
                 grid = [Setting(params=(("tau_s", t),), chain=(sq,), components=(Component((Part(sq.name, lag(t)),)),))
                         for t in log_grid(5 * ctx.dt, 12 * 3600.0, 4)]
             settings[a] = grid
@@ -307,9 +309,10 @@ def _eddy(ctx: _Ctx) -> list[Hypothesis]:
             key=f"eddy_loss:{n}", family="eddy_loss", title=f"heat ~ {n}^2 (iron eddy-current loss, viscous friction)",
             explanation=("Eddy currents in the motor's iron dissipate heat ~ speed^2 (hysteresis ~ speed is "
                          "already in the speed factor); the paper neglected it. The heat is made in the motor "
-                         "iron beside the stator winding, so it moves the tool as the motor current's heat does. "
-                         "Viscous friction (bearing grease, air in the gap) also grows ~ speed^2 and heats the "
-                         "same parts: these signals do not tell the two apart."),
+                         "iron beside the stator winding, so it moves the tool as the motor current's heat does "
+                         "(path shape: a current's). Viscous friction (bearing grease, oil-air churning, air in the "
+                         "gap) also grows ~ speed^2; in the bearings it moves the tool as the speed's own friction "
+                         "heat does (path shape: the speed's). Which place fits better is the path shape chosen."),
             settings=settings))
     return out
 
