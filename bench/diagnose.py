@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/diagnose.py [--quick] [--cases a,b,...] [--variants 1,2,3] [--jobs N]
                                        [--report DIR] [--protocol new|old|both] [--seen all|days] [--no-real]
-                                       [--cache DIR] [--blocks K]
+                                       [--cache DIR] [--blocks K] [--days N]
 
 Only what a user has is used: the ``cncgw`` commands, run in this process through ``gateway.cli.main``
 (``simulate record``, ``identify``, ``diagnose``, ``estimate --json``), so the bench keeps working while
@@ -19,7 +19,8 @@ machine's gains and time constants perturbed by seed N, simulators/machine/varia
 - ``cncgw diagnose --model baseline exp*.csv day*.csv -o DIR`` on the experiments plus four production days
   (the four dates after the experiments, midnight to midnight, each starting at rest in that date's room;
   kinds of day: two shifts, day shift, late shift, an idle day, in an order drawn from the variant; jobs of
-  a job shop drawn likewise) - timed;
+  a job shop drawn likewise) - timed; ``--days N`` diagnoses N days (the kinds repeat; the fresh day moves
+  to two dates after the last);
 - scored on a fresh production day (two dates later, another schedule, other noise) that nothing was
   fitted on, with
   ``cncgw estimate --json`` and (a) the baseline, (b) the model diagnose wrote (``DIR/*.diagnosed.model.toml``);
@@ -262,8 +263,12 @@ def case_seed(variant: int, effect: str) -> int:
     return 10_000 + 97 * variant + (5_000 if effect.endswith(" b") else 0)
 
 
-def new_plan(effect_name: str, variant: int) -> Plan:
-    """The new protocol's scenarios: the effect in the nine experiments, four days and the fresh day."""
+def new_plan(effect_name: str, variant: int, n_days: int = 4) -> Plan:
+    """The new protocol's scenarios: the effect in the nine experiments, ``n_days`` days and the fresh day.
+
+    With more than four days the kinds of day repeat in the drawn order (other jobs, other noise) and the fresh
+    day moves to two dates after the last; four days draw exactly what they always did.
+    """
     effect = EFFECTS[effect_name]
     seed = case_seed(variant, effect_name)
     rng = np.random.default_rng(seed)
@@ -311,10 +316,11 @@ def new_plan(effect_name: str, variant: int) -> Plan:
             doc["effects"] = tables
         return _dump(plant(doc))
 
-    days = {f"day{d + 1}": day_doc(f"day{d + 1}", order[d], seed + 20 + d, d + 1,
+    days = {f"day{d + 1}": day_doc(f"day{d + 1}", order[d % len(order)], seed + 20 + d, d + 1,
                                    24.0 * step_h[d] if (effect.step and d in step_days) else None)
-            for d in range(4)}
-    fresh = {"fresh": day_doc("fresh", fresh_kind, seed + 50, 6, None)}  # a day after the four, not the next
+            for d in range(n_days)}
+    # a day after the last, not the next
+    fresh = {"fresh": day_doc("fresh", fresh_kind, seed + 50, max(6, n_days + 2), None)}
     return Plan(experiments=exps, days=days, fresh=fresh)
 
 
@@ -410,6 +416,8 @@ class Names:
     source: str  # where the names were read
     #: "key ~ factor": mechanisms the report says these recordings cannot tell from a factor's path
     indistinguishable: list[str] = field(default_factory=list)
+    #: report.md's "closest candidate: ..." conclusion (when nothing was named), "" if none
+    closest: str = ""
 
 
 def diagnosis_names(out_dir: Path) -> Names:
@@ -421,6 +429,7 @@ def diagnosis_names(out_dir: Path) -> Names:
     low = md.lower()
     nothing = "nothing significant is missing" in low
     unfit = "not fit for compensation" in low
+    closest = next((ln[2:] for ln in md.splitlines() if ln.startswith("- closest candidate: ")), "")
     models = sorted(out_dir.glob("*.diagnosed.model.toml"))
     if models:
         info = tomllib.loads(models[0].read_text()).get("info", {}).get("diagnosis", {})
@@ -429,18 +438,18 @@ def diagnosis_names(out_dir: Path) -> Names:
             named = list(info.get("accepted", []))
             named += [n for n in info.get("explained", []) if n not in named]
             return Names(named, list(info.get("artefacts_excluded", [])), nothing, unfit, "model info",
-                         list(info.get("indistinguishable", [])))
+                         list(info.get("indistinguishable", [])), closest)
     if (out_dir / "report.json").is_file():
         doc = json.loads((out_dir / "report.json").read_text())
         if "accepted" in doc:
             return Names(list(doc["accepted"]), list(doc.get("artefacts", [])), nothing, unfit, "report.json",
-                         [f"{c['hypothesis']} ~ {c['factor']}" for c in doc.get("indistinguishable", [])])
+                         [f"{c['hypothesis']} ~ {c['factor']}" for c in doc.get("indistinguishable", [])], closest)
     accepted = []
     if "## Accepted" in md:
         section = md.split("## Accepted", 1)[1].split("\n## ", 1)[0]
         accepted = [ln[4:].split(" (physics")[0] for ln in section.splitlines()
                     if ln.startswith("### ") and "(physics" in ln]
-    return Names(accepted, [], nothing, unfit, "report.md")
+    return Names(accepted, [], nothing, unfit, "report.md", closest=closest)
 
 
 def _read_table(path: Path) -> tuple[list[str], np.ndarray]:
@@ -503,6 +512,7 @@ class Row:
     nothing_missing: bool = False
     says_unfit: bool = False
     indistinguishable: list[str] = field(default_factory=list)  # as :class:`Names`
+    closest: str = ""  # as :class:`Names`
     before: dict[str, float] = field(default_factory=dict)  # fresh-day RMS per axis, baseline
     after: dict[str, float] = field(default_factory=dict)  # fresh-day RMS per axis, written model
     before_pct: dict[str, float] = field(default_factory=dict)  # fresh-day max error % of peak, baseline
@@ -525,11 +535,11 @@ def _pooled(d: dict[str, float]) -> float:
 
 
 def run_bench_case(protocol: str, effect_name: str, variant: int, cache: Path, report: Path | None,
-             seen_days_only: bool = False, blocks: int | None = None) -> Row:
+             seen_days_only: bool = False, blocks: int | None = None, n_days: int = 4) -> Row:
     """Simulate (cached), identify, diagnose (timed) and score one case through the command line."""
     row = Row(protocol=protocol, effect=effect_name, variant=variant)
     effect = EFFECTS[effect_name]
-    plan = new_plan(effect_name, variant) if protocol == "new" else old_plan(effect_name, variant)
+    plan = new_plan(effect_name, variant, n_days) if protocol == "new" else old_plan(effect_name, variant)
     with tempfile.TemporaryDirectory(prefix="diag-bench-") as tmp:
         work = Path(tmp)
         out = (report / protocol / row.label.replace(" ", "-")) if report is not None else work / "diag"
@@ -550,6 +560,7 @@ def run_bench_case(protocol: str, effect_name: str, variant: int, cache: Path, r
             row.accepted, row.artefacts, row.names_from = names.accepted, names.artefacts, names.source
             row.nothing_missing, row.says_unfit = names.nothing_missing, names.says_unfit
             row.indistinguishable = names.indistinguishable
+            row.closest = names.closest
             written = sorted(out.glob("*.diagnosed.model.toml"))
             if not written:
                 raise CommandFailed(f"no *.diagnosed.model.toml in {out}")
@@ -675,6 +686,9 @@ def summary(verdicts: list[Verdict], *, protocol: str) -> list[str]:
                    f"wrong names {sum(bool(v.wrong) for v in vs)}/{len(vs)}"
                    + (f", said indistinguishable from a factor's path {said}/{len(vs)}" if said else "")
                    + (f", worst gain on a moved axis median {np.median(g):+.0f} %" if g else ""))
+    for v in need:
+        if not v.row.accepted and v.row.closest:  # nothing named: what the report says would decide it
+            out.append(f"  {v.row.label} (nothing named): {v.row.closest}")
     absorbed = [v for v in effects if v.absorbed]
     out.append(f"absorbed effects given no wrong name: {sum(not v.wrong for v in absorbed)}/{len(absorbed)}  "
                "(aim: all)")
@@ -853,6 +867,8 @@ def main() -> int:
     ap.add_argument("--report", help="write per-case diagnosis reports, summary.md and fresh_rms.png here")
     ap.add_argument("--no-real", action="store_true", help="skip the ACE lathe and SJTU spindle")
     ap.add_argument("--blocks", type=int, help="held-out blocks passed to cncgw diagnose (default: its own)")
+    ap.add_argument("--days", type=int, default=4, choices=range(1, 21), metavar="N",
+                    help="production days diagnosed in the new protocol (1-20, default 4)")
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "cncgw-bench" / "diagnose"),
                     help="recordings cache (default ~/.cache/cncgw-bench/diagnose)")
     args = ap.parse_args()
@@ -872,7 +888,8 @@ def main() -> int:
         wanted = list(names)
         if "none" not in wanted:  # the reference of every variant
             wanted.append("none")
-        tasks += [(protocol, n, i, cache, report, args.seen == "days", args.blocks) for i in ids for n in wanted]
+        tasks += [(protocol, n, i, cache, report, args.seen == "days", args.blocks, args.days)
+                  for i in ids for n in wanted]
     print(f"{len(tasks)} cases ({', '.join(protocols)} protocol), {args.jobs} process(es); BLAS threads "
           f"{os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}; cache {cache}", flush=True)
     rows: list[Row] = []
@@ -898,7 +915,8 @@ def main() -> int:
     verdicts = [judge(r, refs.get((r.protocol, r.variant))) for r in rows]
     lines: list[str] = []
     for protocol in protocols:
-        seen = "4 days diagnosed (--seen days)" if args.seen == "days" else "9 experiments + 4 days diagnosed"
+        seen = (f"{args.days} days diagnosed (--seen days)" if args.seen == "days"
+                else f"9 experiments + {args.days} days diagnosed")
         title = (f"NEW protocol: effect in every recording ({seen}), plant variants "
                  if protocol == "new" else
                  "OLD protocol: baseline from clean experiments on the nominal machine, effect in one 4-day "

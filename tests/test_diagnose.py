@@ -21,7 +21,7 @@ from gateway.commands._common import load_model_for
 from gateway.diagnose import Options, diagnose, factor_infos
 from gateway.diagnose.data import build_stack
 from gateway.diagnose.locate import aligned_residual, coloured_correlation, find_steps, noise_level, spectral_lines
-from gateway.diagnose.select import BURN_IN, holm, make_blocks, one_sided_p
+from gateway.diagnose.select import BURN_IN, blocks_to_decide, holm, make_blocks, one_sided_p
 from gateway.model import FirstOrder, PathTF, ThermalModel, load_model, save_model
 from gateway.profile import load_profile
 from gateway.recording import Recording, write_recording
@@ -264,6 +264,26 @@ def test_holm_and_signed_rank():
     assert holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
     assert one_sided_p(np.ones(12)) == pytest.approx(1 / 4096)
     assert one_sided_p(-np.ones(12)) == pytest.approx(1.0)
+
+
+def test_blocks_to_decide_projects_what_more_recordings_would_decide():
+    """The projection is a power calculation: blocks drawn as the observed ones were pass at about that rate."""
+    rng = np.random.default_rng(4)
+
+    def draw(n: int) -> np.ndarray:  # a few working-hour blocks that improve much, quiet ones scattered
+        return np.where(rng.random(n) < 0.3, rng.uniform(20.0, 250.0, n), rng.normal(0.0, 5.0, n))
+
+    seen = draw(24)
+    assert one_sided_p(seen) * 100 > 0.05  # undecided among 100 hypotheses
+    m = blocks_to_decide(seen, multiplicity=100, alpha=0.05)
+    assert m is not None
+    assert 5 < m < 400
+    assert blocks_to_decide(seen, multiplicity=300, alpha=0.05) >= m  # more hypotheses: more blocks
+    assert blocks_to_decide(seen, multiplicity=1, alpha=0.5) == 0  # passes already
+    assert blocks_to_decide(-np.abs(seen), multiplicity=1, alpha=0.05) is None  # nothing improves
+    # recordings like these: the same process, m more blocks, decided in about 80 % of trials (not 20 %)
+    passed = [one_sided_p(np.concatenate([seen, draw(m)])) * 100 < 0.05 for _ in range(200)]
+    assert 0.6 < np.mean(passed) <= 1.0
 
 
 def test_blocks_start_each_recording_with_a_burn_in():

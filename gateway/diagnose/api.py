@@ -46,7 +46,7 @@ from gateway.diagnose.locate import (
 )
 from gateway.diagnose.refit import Reidentified, path_corrections, reidentify
 from gateway.diagnose.search import Options, SearchResult, Trial, search
-from gateway.diagnose.select import BURN_IN, make_blocks
+from gateway.diagnose.select import BURN_IN, blocks_to_decide, make_blocks
 from gateway.model.coverage import coverage_of
 from gateway.model.envelope import envelope_of
 from gateway.model.model import ThermalModel
@@ -325,14 +325,6 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
                        f"held at the identified time constants ({ex.verdict}): no family is named")
     accepted = {t.hypothesis.key for t in physics} | {t.hypothesis.key for t in (ex.named if ex else [])}
     out += [c.line(accepted=c.key in accepted) for c in d.confusions]
-    if not physics:
-        tried = [t for t in d.result.trials if t.round == 1 and not t.hypothesis.artefact]
-        # ranked by evidence; "closest" only for one that predicted the held-out blocks better than nothing
-        better = [t for t in tried if sum(e.sse_after for e in t.evidence.values())
-                  < sum(e.sse_before for e in t.evidence.values())]
-        best = min(better, key=lambda t: (t.p_holm, -t.score), default=None)
-        if best is not None:
-            out.append(f"closest candidate: {best.hypothesis.title}: {best.verdict}")
     span_h = max(b - a for a, b in st.bounds) * st.dt_s / 3600.0
     total_h = st.n * st.dt_s / 3600.0
     k = int(block.max()) + 1 if (block >= 0).any() else 0
@@ -345,6 +337,15 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
             burn = np.flatnonzero(block[a:b] == BURN_IN)
             held_s += float(st.time_s[a + held[-1]] - st.time_s[a + (burn[-1] if burn.size else 0)])
     block_h = held_s / max(k, 1) / 3600.0
+    if not physics:
+        tried = [t for t in d.result.trials if t.round == 1 and not t.hypothesis.artefact]
+        # ranked by evidence; "closest" only for one that predicted the held-out blocks better than nothing
+        better = [t for t in tried if sum(e.sse_after for e in t.evidence.values())
+                  < sum(e.sse_before for e in t.evidence.values())]
+        best = min(better, key=lambda t: (t.p_holm, -t.score), default=None)
+        if best is not None:
+            out.append(f"closest candidate: {best.hypothesis.title}: {best.verdict}"
+                       + _to_decide(d, best, sum(t.round == 1 for t in d.result.trials), block_h))
     out.append(f"{len(st.names)} recording(s), {total_h:.1f} h in all (longest {span_h:.1f} h); judged on {k} "
                f"held-out blocks of about {block_h:.1f} h (the first block of each recording only fits the initial "
                "state)")
@@ -392,6 +393,32 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
         if t.hypothesis.artefact:
             out.append(f"{t.hypothesis.title} on {', '.join(t.axes)}: excluded from the model")
     return out
+
+
+def _to_decide(d: Diagnosis, t: Trial, tried: int, block_h: float) -> str:
+    """For a candidate relevant on an axis but not significant: how much more recording would decide it.
+
+    The axis where its blocks improve most consistently, at the multiplicity its test carried (the axes, the
+    hypotheses of the round, the two searches): see :func:`gateway.diagnose.select.blocks_to_decide`.
+    """
+    o = d.options
+    if not t.verdict.startswith("not significant"):
+        return ""
+    relevant = [e for e in t.evidence.values()
+                if e.setting is not None and e.fit.without is not None and e.effect_rms_um <= e.peak_um
+                and e.effect_rms_um >= e.relevance_um and e.gain >= o.min_relevant_gain]
+    if not relevant:
+        return ""
+    e = min(relevant, key=lambda e: e.p)
+    alpha = o.alpha / max(len(d.results), 1)
+    m = blocks_to_decide(e.fit.without - e.fit.held, multiplicity=len(t.evidence) * tried, alpha=alpha)
+    head = (f"; it removes {100 * e.gain:.0f} % of {e.axis}'s held-out squared error, but {tried} hypotheses were "
+            "tried on these blocks and chance must be ruled out for all of them")
+    if m is None:
+        return head + ": no amount of recordings like these would decide it"
+    hours = m * block_h
+    return (head + f": about {m} more held-out blocks like these would decide it (80 % of the time), about "
+            f"{hours:.0f} h of recording ({hours / 24:.1f} days) like these; record more and diagnose again")
 
 
 def _monotonic(st: Stack, factor: str) -> bool:

@@ -452,6 +452,50 @@ def one_sided_p(d: np.ndarray) -> float:
     return _EXACT_P[key]
 
 
+def blocks_to_decide(d: np.ndarray, *, multiplicity: float, alpha: float, power: float = 0.8, draws: int = 400,
+                     most: int = 2000, seed: int = 0) -> int | None:
+    """How many more held-out blocks like ``d`` a test of "the blocks improve" would need to pass.
+
+    ``d``: the blocks' improvements so far (held-out SSE without minus with). Blocks drawn from ``d`` with
+    replacement stand for recordings like these; the answer is the smallest count m for which, with m such
+    blocks added, ``multiplicity`` x the one-sided signed-rank p (its normal approximation, which is what
+    scipy uses beyond a few dozen blocks) falls below ``alpha`` in ``power`` of the draws. 0: it passes
+    already; None: not within ``most`` blocks, or no block improves. A projection, not a promise: it assumes
+    the recordings to come vary as these did.
+    """
+    d = np.asarray(d, float)
+    d = d[np.isfinite(d) & (d != 0)]
+    if not (d > 0).any():
+        return None
+    rng = np.random.default_rng(seed)
+    extra = rng.integers(0, len(d), size=(draws, most))  # common draws: one sequence of blocks per draw
+    cut = alpha / multiplicity
+
+    def passes(m: int) -> bool:
+        v = np.concatenate([np.broadcast_to(d, (draws, len(d))), d[extra[:, :m]]], axis=1)
+        n = v.shape[1]
+        ranks = np.argsort(np.argsort(np.abs(v), axis=1), axis=1) + 1.0
+        t = np.where(v > 0, ranks, 0.0).sum(axis=1)
+        z = (t - n * (n + 1) / 4.0) / math.sqrt(n * (n + 1) * (2 * n + 1) / 24.0)
+        p = scipy.stats.norm.sf(z)
+        return float(np.mean(p < cut)) >= power
+
+    if passes(0):
+        return 0
+    lo, hi = 0, 1
+    while not passes(hi):
+        lo, hi = hi, 2 * hi
+        if hi > most:
+            if not passes(most):
+                return None
+            hi = most
+            break
+    while hi - lo > 1:  # lo fails, hi passes
+        mid = (lo + hi) // 2
+        lo, hi = (lo, mid) if passes(mid) else (mid, hi)
+    return hi
+
+
 #: scipy's signed-rank test is exact up to this many non-zero differences without ties
 EXACT_WILCOXON_MAX = 50
 _EXACT_P: dict[tuple[int, int], float] = {}
