@@ -9,6 +9,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import re
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -131,6 +132,22 @@ def test_viscous_drag_heat_is_taken_for_heat_that_grows_with_speed(bench, baseli
     d = diagnose(baseline, [seen], factors=factor_infos(load_profile(SIM_PROFILE)))
     assert d.accepted_physics[0] in ("eddy_loss:spindle_speed", "bearing_preload:spindle_speed")
     assert fresh_rms(d.extended, fresh) < 0.5 * fresh_rms(baseline, fresh)
+
+
+def test_an_effect_too_few_blocks_can_decide_is_the_closest_candidate_with_what_would_decide_it(bench, baseline):
+    """Four held-out blocks cannot rule out chance among dozens of hypotheses: nothing is named, and the report
+    says which candidate lacked only that, and how much more recording (and which --blocks) would decide it."""
+    seen, _ = old_case(bench, "viscous drag", days=2)
+    d = diagnose(baseline, [seen], factors=factor_infos(load_profile(SIM_PROFILE)), options=Options(blocks=4))
+    assert d.accepted_physics == []
+    closest = next(c for c in d.conclusions if c.startswith("closest candidate: "))
+    # heat ~ speed^2 in the bearings, or bearing friction growing with heat (see the test above)
+    assert closest.startswith(("closest candidate: heat ~ spindle_speed^2",
+                               "closest candidate: bearing preload")), closest
+    m = re.search(r"about (\d+) more held-out blocks like these would decide it .* --blocks (\d+)", closest)
+    assert m, closest
+    assert int(m[1]) > 0
+    assert int(m[2]) > 4, closest
 
 
 def test_a_sensor_step_is_an_artefact_not_physics():

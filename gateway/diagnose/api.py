@@ -45,7 +45,7 @@ from gateway.diagnose.locate import (
     spectral_lines,
 )
 from gateway.diagnose.refit import Reidentified, path_corrections, reidentify
-from gateway.diagnose.search import Options, SearchResult, Trial, search
+from gateway.diagnose.search import AxisEvidence, Options, SearchResult, Trial, search
 from gateway.diagnose.select import BURN_IN, blocks_to_decide, make_blocks
 from gateway.model.coverage import coverage_of
 from gateway.model.envelope import envelope_of
@@ -342,7 +342,8 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
         # ranked by evidence; "closest" only for one that predicted the held-out blocks better than nothing
         better = [t for t in tried if sum(e.sse_after for e in t.evidence.values())
                   < sum(e.sse_before for e in t.evidence.values())]
-        best = min(better, key=lambda t: (t.p_holm, -t.score), default=None)
+        # ... first those that lacked only significance (relevant on an axis): they are what more data decides
+        best = min(better, key=lambda t: (not _relevant(d, t), t.p_holm, -t.score), default=None)
         if best is not None:
             out.append(f"closest candidate: {best.hypothesis.title}: {best.verdict}"
                        + _to_decide(d, best, sum(t.round == 1 for t in d.result.trials), block_h))
@@ -395,30 +396,41 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
     return out
 
 
+def _relevant(d: Diagnosis, t: Trial) -> list[AxisEvidence]:
+    """The axes where ``t`` would be relevant: the search's rules without significance.
+
+    A plausible setting, a contribution above the relevance bound and within the measured displacement, and
+    enough of the held-out error removed.
+    """
+    return [e for e in t.evidence.values()
+            if e.setting is not None and e.fit.without is not None and e.relevance_um <= e.effect_rms_um <= e.peak_um
+            and e.gain >= d.options.min_relevant_gain]
+
+
 def _to_decide(d: Diagnosis, t: Trial, tried: int, block_h: float) -> str:
     """For a candidate relevant on an axis but not significant: how much more recording would decide it.
 
     The axis where its blocks improve most consistently, at the multiplicity its test carried (the axes, the
     hypotheses of the round, the two searches): see :func:`gateway.diagnose.select.blocks_to_decide`.
     """
-    o = d.options
-    if not t.verdict.startswith("not significant"):
-        return ""
-    relevant = [e for e in t.evidence.values()
-                if e.setting is not None and e.fit.without is not None and e.effect_rms_um <= e.peak_um
-                and e.effect_rms_um >= e.relevance_um and e.gain >= o.min_relevant_gain]
-    if not relevant:
+    relevant = _relevant(d, t)
+    if not t.verdict.startswith("not significant") or not relevant:
         return ""
     e = min(relevant, key=lambda e: e.p)
-    alpha = o.alpha / max(len(d.results), 1)
+    alpha = d.options.alpha / max(len(d.results), 1)
     m = blocks_to_decide(e.fit.without - e.fit.held, multiplicity=len(t.evidence) * tried, alpha=alpha)
     head = (f"; it removes {100 * e.gain:.0f} % of {e.axis}'s held-out squared error, but {tried} hypotheses were "
             "tried on these blocks and chance must be ruled out for all of them")
     if m is None:
         return head + ": no amount of recordings like these would decide it"
     hours = m * block_h
-    return (head + f": about {m} more held-out blocks like these would decide it (80 % of the time), about "
-            f"{hours:.0f} h of recording ({hours / 24:.1f} days) like these; record more and diagnose again")
+    k = int(d.block.max()) + 1
+    # the blocks' length is what makes their sums consistent (more recording in as many blocks is another test):
+    # --blocks asks for about that many, each recording gets a few at least, so the option scales with the count
+    again = math.ceil(d.options.blocks * (k + m) / k)
+    return (head + f": about {m} more held-out blocks like these would decide it (80 % of the time): record about "
+            f"{hours:.0f} h more ({hours / 24:.1f} days) like these and diagnose again with --blocks {again} (to keep "
+            f"blocks of about {block_h:.1f} h, as here)")
 
 
 def _monotonic(st: Stack, factor: str) -> bool:
