@@ -206,6 +206,10 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
               "explained": explanation.names if explanation is not None else [],
               "paths_changed": explanation.changes if explanation is not None else [],
               "indistinguishable": [f"{c.key} ~ {c.factor}" for c in confused],
+              # named mechanisms the held-out blocks do not tell apart from the one named (see search.Trial.rivals)
+              "not_told_apart": list(dict.fromkeys(
+                  f"{t.hypothesis.key} ~ {r.hypothesis.key}"
+                  for t in [*result.accepted, *(explanation.named if explanation else [])] for r in t.rivals)),
               "artefacts_excluded": [text for t, text in on if t.hypothesis.artefact]
               + [f"step on {s.axis} at {s.time_h:.2f} h in {s.recording}" for f in findings.values() for s in f.steps]}
     extended = comparison.written.model
@@ -380,12 +384,20 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
     if seen:
         out.append(f"{', '.join(seen)} identified the model: there its error is a fit residual, not a test; they "
                    "still inform the re-identification and the hypotheses' fits")
-    for t in d.result.accepted:
-        rivals = [r.hypothesis.title for r in d.result.trials
-                  if r.round == t.round and r is not t and r.verdict.startswith("passes")]
-        if rivals:
-            out.append(f"{t.hypothesis.title}: these data are also consistent with {'; '.join(rivals[:3])} "
-                       "(they pass too; the one with fewer parameters, or a significantly better one, was taken)")
+    named = [*d.result.accepted, *(t for t in (ex.named if ex else []) if t not in d.result.accepted)]
+    for t in named:
+        if t.rivals:
+            out.append(f"{t.hypothesis.title}: these recordings do not tell it apart from "
+                       f"{'; '.join(r.hypothesis.title for r in t.rivals[:3])}: they pass too and predict the held-out "
+                       "blocks not significantly worse; it was taken for fewer parameters, for passing with the paths "
+                       "held, or for the larger held-out gain, so it is named with them, not alone (a model with "
+                       "either predicts alike here)")
+        trials = ex.result.trials if ex is not None and t in ex.named else d.result.trials
+        others = [r.hypothesis.title for r in trials if r.round == t.round and r is not t and r not in t.rivals
+                  and r.verdict.startswith("passes")]
+        if others:
+            out.append(f"{t.hypothesis.title}: {'; '.join(others[:3])} pass too, but predict the held-out blocks "
+                       "significantly worse or change a path's structure only (an extra mode, a dead time)")
     for a, f in d.findings.items():
         for s in f.steps:
             out.append(f"axis {a}: a step of {s.size_um:+.3g} um within one window at {s.time_h:.2f} h "

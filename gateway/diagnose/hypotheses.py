@@ -295,15 +295,17 @@ def _eddy(ctx: _Ctx) -> list[Hypothesis]:
                      note=f"{n} squared: iron eddy-current loss and viscous friction ~ speed^2")
         settings: dict[str, list[Setting]] = {}
         for a in ctx.axes:
-            # in the motor's iron (eddy loss: where the motor current's heat acts) or in the bearings
-            # (viscous friction: where the speed's own friction heat acts)
-            shapes = [*_motor_shapes(ctx, a, n), *([n] if ctx.base_terms(a, n) else [])]
+            # in the motor's iron (eddy loss: where the motor current's heat acts; a free lag where the profile
+            # does not say which current is the motor's) or in the bearings (viscous friction: where the speed's
+            # own friction heat acts)
+            motor = _motor_shapes(ctx, a, n)
+            shapes = [*motor, *([n] if ctx.base_terms(a, n) else [])]
             grid = [Setting(params=(("path_shape", f),), chain=(sq,),
                             components=(Component((Part(sq.name, ctx.base_terms(a, f)),), f"as {f}"),), signs=(1,))
                     for f in shapes]
-            if not shapes:  # no motor or speed path on this axis: a free lag
-                grid = [Setting(params=(("tau_s", t),), chain=(sq,), components=(Component((Part(sq.name, lag(t)),)),))
-                        for t in log_grid(5 * ctx.dt, 12 * 3600.0, 4)]
+            if not motor:
+                grid += [Setting(params=(("tau_s", t),), chain=(sq,), components=(Component((Part(sq.name, lag(t)),)),))
+                         for t in log_grid(5 * ctx.dt, 12 * 3600.0, 4)]
             settings[a] = grid
         out.append(Hypothesis(
             key=f"eddy_loss:{n}", family="eddy_loss", title=f"heat ~ {n}^2 (iron eddy-current loss, viscous friction)",

@@ -89,6 +89,8 @@ def to_json(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = "",
         "indistinguishable": [{"hypothesis": c.key, "title": c.title, "inputs": list(c.inputs), "factor": c.factor,
                                "unexplained_share": c.unexplained, "tell_apart": c.tell_apart}
                               for c in d.confusions],
+        # "named ~ rival": passed in the same round, held-out blocks not significantly worse (search.Trial.rivals)
+        "not_told_apart": list(d.extended.info.get("diagnosis", {}).get("not_told_apart", [])),
         "candidates": {k: {"title": c.title, "passes": c.passes, "verdict": c.verdict, "p": c.p, "gain_share": c.gain,
                            "held_out_sse_um2": c.sse, "metrics": metrics(c.metrics)}
                        for k, c in d.comparison.candidates.items()},

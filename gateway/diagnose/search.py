@@ -96,6 +96,9 @@ class Trial:
     p: float
     p_holm: float = math.nan
     verdict: str = ""
+    #: named mechanisms that passed in the same round and predict the held-out blocks not significantly worse
+    #: than this one (when it was accepted): these recordings do not tell them apart
+    rivals: list[Trial] = field(default_factory=list)
 
     @property
     def score(self) -> float:
@@ -314,7 +317,21 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
             break
         chosen = _occam(passing, round_trials, options, preferred=held_passing)
         for t in passing:
-            t.verdict = "accepted" if t is chosen else f"passes, but {chosen.hypothesis.key} explains more"
+            if t is chosen:
+                t.verdict = "accepted"
+                continue
+            # does the one taken predict the held-out blocks significantly better, or was it taken for its
+            # fewer parameters (or for passing with the paths held) among ones the blocks do not tell apart?
+            p_pair = one_sided_p(_pair(t, chosen))
+            if p_pair < options.alpha:
+                t.verdict = (f"passes, but {chosen.hypothesis.key} predicts the held-out blocks significantly better "
+                             f"(p = {p_pair:.2g})")
+                continue
+            t.verdict = (f"passes, and {chosen.hypothesis.key} does not predict the held-out blocks significantly "
+                         f"better (p = {p_pair:.2g}): not told apart; {chosen.hypothesis.key} was taken (fewer "
+                         "parameters, passing with the paths held, or the larger held-out gain)")
+            if not (t.hypothesis.generic or t.hypothesis.artefact or chosen.hypothesis.artefact):
+                chosen.rivals.append(t)
         accepted.append(chosen)
         for ax in [*axes, *held_axes]:
             e = chosen.evidence.get(ax.name)
