@@ -20,7 +20,7 @@ from gateway.diagnose.explain import explain, held_corrections
 from gateway.diagnose.hypotheses import Hypothesis, Setting
 from gateway.diagnose.refit import path_corrections
 from gateway.diagnose.report import to_json
-from gateway.diagnose.search import AxisEvidence, Options, Trial, _occam, search
+from gateway.diagnose.search import AxisEvidence, Options, Trial, _decide, _occam, search
 from gateway.diagnose.select import GridFit
 from gateway.identify import identify
 from gateway.model import FirstOrder, PathTF
@@ -140,6 +140,22 @@ def test_of_two_the_free_search_cannot_tell_apart_the_one_that_passes_with_the_p
     # significantly better over the blocks: the free search decides
     c = _trial("preload", [w * 0.10 for w in without], without)
     assert _occam([c, b], [c, b], Options(), preferred={"eddy"}) is c
+
+
+def test_a_mechanism_the_blocks_do_not_tell_apart_from_the_one_taken_is_its_rival_not_a_lesser_fit():
+    without = [10.0 + 0.1 * k for k in range(12)]
+    held = [0.3 * w for w in without]
+    taken = _trial("preload", held, without)
+    alike = _trial("eddy", [h + (0.25 if k % 2 else -0.2) for k, h in enumerate(held)], without)
+    worse = _trial("cabinet", [0.6 * w for w in without], without)  # every block worse than the one taken
+    generic = _trial("slow_mode", [h + (0.2 if k % 2 else -0.2) for k, h in enumerate(held)], without)
+    generic = replace(generic, hypothesis=replace(generic.hypothesis, generic=True))
+    _decide(taken, [taken, alike, worse, generic], Options())
+    assert taken.verdict == "accepted"
+    assert [r.hypothesis.key for r in taken.rivals] == ["eddy"]
+    assert "not told apart" in alike.verdict, alike.verdict
+    assert "significantly better (p = " in worse.verdict, worse.verdict
+    assert "not told apart" in generic.verdict  # said so, but a path's structure is not a rival name
 
 
 def test_when_nothing_explains_the_change_the_report_says_how_near_the_closest_mechanism_came(monkeypatch):

@@ -316,22 +316,7 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
         if not passing:
             break
         chosen = _occam(passing, round_trials, options, preferred=held_passing)
-        for t in passing:
-            if t is chosen:
-                t.verdict = "accepted"
-                continue
-            # does the one taken predict the held-out blocks significantly better, or was it taken for its
-            # fewer parameters (or for passing with the paths held) among ones the blocks do not tell apart?
-            p_pair = one_sided_p(_pair(t, chosen))
-            if p_pair < options.alpha:
-                t.verdict = (f"passes, but {chosen.hypothesis.key} predicts the held-out blocks significantly better "
-                             f"(p = {p_pair:.2g})")
-                continue
-            t.verdict = (f"passes, and {chosen.hypothesis.key} does not predict the held-out blocks significantly "
-                         f"better (p = {p_pair:.2g}): not told apart; {chosen.hypothesis.key} was taken (fewer "
-                         "parameters, passing with the paths held, or the larger held-out gain)")
-            if not (t.hypothesis.generic or t.hypothesis.artefact or chosen.hypothesis.artefact):
-                chosen.rivals.append(t)
+        _decide(chosen, passing, options)
         accepted.append(chosen)
         for ax in [*axes, *held_axes]:
             e = chosen.evidence.get(ax.name)
@@ -569,6 +554,31 @@ def _occam(passing: Sequence[Trial], tried: Sequence[Trial], o: Options, *, pref
         if t.score > current.score and one_sided_p(_pair(current, t)) < o.alpha:
             current = t
     return current
+
+
+def _decide(chosen: Trial, passing: Sequence[Trial], o: Options) -> None:
+    """Verdicts of a round's passing trials once ``chosen`` is accepted, and its rivals.
+
+    A passing trial the chosen one does not predict the held-out blocks significantly better than (pooled
+    over the axes, one-sided signed rank at ``alpha``) is not told apart from it: it was taken for fewer
+    parameters, for passing with the paths held, or for the larger held-out gain. Named mechanisms among those
+    are its :attr:`Trial.rivals` (a generic change of a path's structure mimics most heat sources: not a rival
+    name).
+    """
+    for t in passing:
+        if t is chosen:
+            t.verdict = "accepted"
+            continue
+        p_pair = one_sided_p(_pair(t, chosen))
+        if p_pair < o.alpha:
+            t.verdict = (f"passes, but {chosen.hypothesis.key} predicts the held-out blocks significantly better "
+                         f"(p = {p_pair:.2g})")
+            continue
+        t.verdict = (f"passes, and {chosen.hypothesis.key} does not predict the held-out blocks significantly "
+                     f"better (p = {p_pair:.2g}): not told apart; {chosen.hypothesis.key} was taken (fewer "
+                     "parameters, passing with the paths held, or the larger held-out gain)")
+        if not (t.hypothesis.generic or t.hypothesis.artefact or chosen.hypothesis.artefact):
+            chosen.rivals.append(t)
 
 
 def _pair(a: Trial, b: Trial) -> np.ndarray:
