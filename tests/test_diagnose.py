@@ -132,6 +132,12 @@ def test_viscous_drag_heat_is_taken_for_heat_that_grows_with_speed(bench, baseli
     d = diagnose(baseline, [seen], factors=factor_infos(load_profile(SIM_PROFILE)))
     assert d.accepted_physics[0] in ("eddy_loss:spindle_speed", "bearing_preload:spindle_speed")
     assert fresh_rms(d.extended, fresh) < 0.5 * fresh_rms(baseline, fresh)
+    # what passed beside it is said, each either not told apart from it or significantly worse
+    told = d.extended.info["diagnosis"]["not_told_apart"]
+    assert all(pair.startswith(d.accepted_physics[0] + " ~ ") for pair in told), told
+    for pair in told:
+        assert any(c.startswith(d.result.accepted[0].hypothesis.title + ": these recordings do not tell it apart")
+                   for c in d.conclusions), pair
 
 
 def test_an_effect_too_few_blocks_can_decide_is_the_closest_candidate_with_what_would_decide_it(bench, baseline):

@@ -390,8 +390,7 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
             out.append(f"{t.hypothesis.title}: these recordings do not tell it apart from "
                        f"{'; '.join(r.hypothesis.title for r in t.rivals[:3])}: they pass too and predict the held-out "
                        "blocks not significantly worse; it was taken for fewer parameters, for passing with the paths "
-                       "held, or for the larger held-out gain, so it is named with them, not alone (a model with "
-                       "either predicts alike here)")
+                       "held, or for the larger held-out gain, so it is named with them, not alone")
         trials = ex.result.trials if ex is not None and t in ex.named else d.result.trials
         others = [r.hypothesis.title for r in trials if r.round == t.round and r is not t and r not in t.rivals
                   and r.verdict.startswith("passes")]
