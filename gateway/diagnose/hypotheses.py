@@ -299,13 +299,13 @@ def _eddy(ctx: _Ctx) -> list[Hypothesis]:
             # does not say which current is the motor's) or in the bearings (viscous friction: where the speed's
             # own friction heat acts)
             motor = _motor_shapes(ctx, a, n)
-            shapes = [*motor, *([n] if ctx.base_terms(a, n) else [])]
+            shapes = [*motor, *([n] if motor and ctx.base_terms(a, n) else [])]
             grid = [Setting(params=(("path_shape", f),), chain=(sq,),
                             components=(Component((Part(sq.name, ctx.base_terms(a, f)),), f"as {f}"),), signs=(1,))
                     for f in shapes]
-            if not motor:
-                grid += [Setting(params=(("tau_s", t),), chain=(sq,), components=(Component((Part(sq.name, lag(t)),)),))
-                         for t in log_grid(5 * ctx.dt, 12 * 3600.0, 4)]
+            if not motor:  # where the motor's heat acts is unknown: a free lag (one place-parameter either way)
+                grid = [Setting(params=(("tau_s", t),), chain=(sq,), components=(Component((Part(sq.name, lag(t)),)),))
+                        for t in log_grid(5 * ctx.dt, 12 * 3600.0, 4)]
             settings[a] = grid
         out.append(Hypothesis(
             key=f"eddy_loss:{n}", family="eddy_loss", title=f"heat ~ {n}^2 (iron eddy-current loss, viscous friction)",
@@ -327,7 +327,9 @@ def _preload(ctx: _Ctx) -> list[Hypothesis]:
             shape = ctx.base_terms(a, n)
             grid = []
             if shape:
-                for tau in log_grid(ctx.dt, 2 * 3600.0, 4):
+                # a lag of one window is speed x speed in the bearings: viscous friction (heat ~ speed^2 as
+                # the speed), not a preload that grows as the bearing warms
+                for tau in log_grid(ctx.dt, 2 * 3600.0, 4)[1:]:
                     inp = Product(name=safe_name(f"{n}_x_lag{round(tau)}s", ctx.taken()), of=(n, n), lag_s=(0.0, tau),
                                   unit=f"({ctx.info[n].unit})^2",
                                   note=f"{n} times its lag ({_tau_text(tau)}): bearing friction growing with heat")
