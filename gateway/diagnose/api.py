@@ -439,9 +439,13 @@ def _to_decide(d: Diagnosis, t: Trial, tried: int, block_h: float) -> str:
     # the blocks' length is what makes their sums consistent (more recording in as many blocks is another test):
     # --blocks asks for about that many, each recording gets a few at least, so the option scales with the count
     again = math.ceil(d.options.blocks * (k + m) / k)
-    return (head + f": about {m} more held-out blocks like these would decide it (80 % of the time): record about "
+    text = (head + f": about {m} more held-out blocks like these would decide it (80 % of the time): record about "
             f"{hours:.0f} h more ({hours / 24:.1f} days) like these and diagnose again with --blocks {again} (to keep "
             f"blocks of about {block_h:.1f} h, as here)")
+    if m > 3 * k:  # its blocks scatter: the same kind of recording decides it slowly, if at all
+        text += ("; that is many times what there is: recordings like these will hardly decide it, recordings where "
+                 "it acts differently from the model's factors (other speeds, other schedules) might")
+    return text
 
 
 def _monotonic(st: Stack, factor: str) -> bool:
