@@ -384,15 +384,18 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
     if seen:
         out.append(f"{', '.join(seen)} identified the model: there its error is a fit residual, not a test; they "
                    "still inform the re-identification and the hypotheses' fits")
-    named = [*d.result.accepted, *(t for t in (ex.named if ex else []) if t not in d.result.accepted)]
+    # by identity: a Trial compares its evidence's arrays when compared by value
+    taken = {id(t) for t in d.result.accepted}
+    named = [*d.result.accepted, *(t for t in (ex.named if ex else []) if id(t) not in taken)]
     for t in named:
         if t.rivals:
             out.append(f"{t.hypothesis.title}: these recordings do not tell it apart from "
                        f"{'; '.join(r.hypothesis.title for r in t.rivals[:3])}: they pass too and predict the held-out "
                        "blocks not significantly worse; it was taken for fewer parameters, for passing with the paths "
                        "held, or for the larger held-out gain, so it is named with them, not alone")
-        trials = ex.result.trials if ex is not None and t in ex.named else d.result.trials
-        others = [r.hypothesis.title for r in trials if r.round == t.round and r is not t and r not in t.rivals
+        trials = ex.result.trials if ex is not None and ex.result and id(t) not in taken else d.result.trials
+        rivals = {id(r) for r in t.rivals}
+        others = [r.hypothesis.title for r in trials if r.round == t.round and r is not t and id(r) not in rivals
                   and r.verdict.startswith("passes")]
         if others:
             out.append(f"{t.hypothesis.title}: {'; '.join(others[:3])} pass too, but predict the held-out blocks "
