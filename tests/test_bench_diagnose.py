@@ -108,3 +108,14 @@ def test_the_model_complete_cases_are_the_no_effect_recordings_with_the_drag_hea
     assert not bench.EFFECTS["none"].complete
     old = _parse(bench.old_plan("complete b", 1))
     assert {sc.viscous_drag_scale for sc in old.values()} == {0.01}
+
+
+def test_more_production_days_keep_the_first_four_and_move_the_fresh_day_after_the_last(bench):
+    four, seven = bench.new_plan("preload", 3), bench.new_plan("preload", 3, n_days=7)
+    assert four == bench.new_plan("preload", 3, n_days=4)  # the default draws what it always did
+    assert list(seven.days) == [f"day{d}" for d in range(1, 8)]
+    assert {k: seven.days[k] for k in four.days} == four.days  # the first four days unchanged
+    assert seven.experiments == four.experiments
+    starts = {n: parse_scenario_text(t, source=n).start_time_s for n, t in {**seven.days, **seven.fresh}.items()}
+    assert starts["fresh"] > max(starts[f"day{d}"] for d in range(1, 8))  # nothing fitted comes after it
+    assert starts["fresh"] - starts["day7"] == 2 * 86400  # two dates after the last, as with four days
