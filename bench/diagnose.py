@@ -850,9 +850,16 @@ def plot(verdicts: list[Verdict], path: Path) -> None:
     ax.barh(y - 0.2, after, height=0.4, label="written by diagnose", color="tab:blue")
     ax.scatter(level, y, marker="|", s=200, color="k", label="no-effect level (same variant)", zorder=3)
     ax.set_yticks(y, [f"{v.row.protocol}: {v.row.label}" for v in vs], fontsize=7)
+    # what was named, at the end of the baseline's bar: right / among those named together / wrong / nothing
+    for yi, v, b in zip(y, vs, before, strict=True):
+        named = "; ".join(family(n) for n in v.row.accepted) or "nothing"
+        mark = {True: "right", False: "set" if v.in_set else "NO", None: ""}[v.right]
+        if math.isfinite(b):
+            ax.text(b * 1.05, yi + 0.2, f"{named} {mark}".strip(), va="center", fontsize=6,
+                    color="k" if mark in ("right", "") else "tab:red")
     ax.invert_yaxis()
     ax.set_xscale("log")
-    ax.set_xlim(0.1, 1.5 * max(x for x in [*before, *after, 0.2] if math.isfinite(x)))
+    ax.set_xlim(0.1, 6 * max(x for x in [*before, *after, 0.2] if math.isfinite(x)))  # room for the names
     ax.set_xlabel("fresh-day RMS over x, y, z (um), cncgw estimate")
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
