@@ -205,6 +205,10 @@ def test_cli_writes_report_figures_and_a_model_estimate_accepts(tmp_path, baseli
     assert "## Every hypothesis tried" in (out / "report.md").read_text()
     extended = load_model(out / "base.diagnosed.model.toml")
     assert extended.info["diagnosis"]["accepted"][0].startswith("room_recorded:room_c on")
+    # what the held-out blocks did not tell apart from it: the same in the model file and in report.json
+    assert extended.info["diagnosis"]["not_told_apart"] == doc["not_told_apart"]
+    taken = {n.split(" on ")[0] for n in extended.info["diagnosis"]["accepted"]}
+    assert all(pair.split(" ~ ")[0] in taken for pair in doc["not_told_apart"]), doc["not_told_apart"]
     assert main(["estimate", "--profile", str(SIM_PROFILE), "--model", str(out / "base.diagnosed.model.toml"),
                  str(fresh_csv), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)[0]["axes"]["z"]["rms_um"] > 0
