@@ -601,6 +601,11 @@ class Verdict:
     in_set: bool | None = None
 
     @property
+    def mark(self) -> str:
+        """"yes" (right family named), "set" (among those named together), "NO", or "-" (nothing expected)."""
+        return {True: "yes", False: "set" if self.in_set else "NO", None: "-"}[self.right]
+
+    @property
     def absorbed(self) -> bool:
         return not self.moved
 
@@ -642,8 +647,7 @@ def case_line(v: Verdict) -> str:
     named = "; ".join(r.accepted) or "nothing"
     if r.artefacts:
         named += f" | artefacts: {len(r.artefacts)}"
-    # "set": not the one named, but among those the report says it cannot tell apart from it
-    ok = {True: "yes", False: "set" if v.in_set else "NO", None: "-"}[v.right]
+    ok = v.mark  # "set": not the one named, but among those the report says it cannot tell apart from it
     if EFFECTS[r.effect].artefact:
         ok = "yes" if r.artefacts and not r.accepted else "NO"
     gains = " ".join(f"{a} {100 * v.gains[a]:+4.0f}%" for a in AXES if a in v.gains)
@@ -853,7 +857,7 @@ def plot(verdicts: list[Verdict], path: Path) -> None:
     # what was named, at the end of the baseline's bar: right / among those named together / wrong / nothing
     for yi, v, b in zip(y, vs, before, strict=True):
         named = "; ".join(family(n) for n in v.row.accepted) or "nothing"
-        mark = {True: "right", False: "set" if v.in_set else "NO", None: ""}[v.right]
+        mark = {"yes": "right", "-": ""}.get(v.mark, v.mark)
         if math.isfinite(b):
             ax.text(b * 1.05, yi + 0.2, f"{named} {mark}".strip(), va="center", fontsize=6,
                     color="k" if mark in ("right", "") else "tab:red")

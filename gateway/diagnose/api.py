@@ -45,7 +45,7 @@ from gateway.diagnose.locate import (
     spectral_lines,
 )
 from gateway.diagnose.refit import Reidentified, path_corrections, reidentify
-from gateway.diagnose.search import AxisEvidence, Options, SearchResult, Trial, search
+from gateway.diagnose.search import AxisEvidence, Options, SearchResult, Trial, search, sized
 from gateway.diagnose.select import BURN_IN, blocks_to_decide, make_blocks
 from gateway.model.coverage import coverage_of
 from gateway.model.envelope import envelope_of
@@ -207,9 +207,8 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
               "paths_changed": explanation.changes if explanation is not None else [],
               "indistinguishable": [f"{c.key} ~ {c.factor}" for c in confused],
               # named mechanisms the held-out blocks do not tell apart from the one named (see search.Trial.rivals)
-              "not_told_apart": list(dict.fromkeys(
-                  f"{t.hypothesis.key} ~ {r.hypothesis.key}"
-                  for t in [*result.accepted, *(explanation.named if explanation else [])] for r in t.rivals)),
+              "not_told_apart": list(dict.fromkeys(f"{t.hypothesis.key} ~ {r.hypothesis.key}"
+                                                   for t in _named(result, explanation) for r in t.rivals)),
               "artefacts_excluded": [text for t, text in on if t.hypothesis.artefact]
               + [f"step on {s.axis} at {s.time_h:.2f} h in {s.recording}" for f in findings.values() for s in f.steps]}
     extended = comparison.written.model
@@ -350,7 +349,7 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
         best = min(better, key=lambda t: (not _relevant(d, t), t.p_holm, -t.score), default=None)
         if best is not None:
             out.append(f"closest candidate: {best.hypothesis.title}: {best.verdict}"
-                       + _to_decide(d, best, sum(t.round == 1 for t in d.result.trials), block_h))
+                       + _to_decide(d, best, sum(t.round == 1 for t in d.result.trials), k, block_h))
     out.append(f"{len(st.names)} recording(s), {total_h:.1f} h in all (longest {span_h:.1f} h); judged on {k} "
                f"held-out blocks of about {block_h:.1f} h (the first block of each recording only fits the initial "
                "state)")
@@ -384,10 +383,8 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
     if seen:
         out.append(f"{', '.join(seen)} identified the model: there its error is a fit residual, not a test; they "
                    "still inform the re-identification and the hypotheses' fits")
-    # by identity: a Trial compares its evidence's arrays when compared by value
     taken = {id(t) for t in d.result.accepted}
-    named = [*d.result.accepted, *(t for t in (ex.named if ex else []) if id(t) not in taken)]
-    for t in named:
+    for t in _named(d.result, ex):
         if t.rivals:
             out.append(f"{t.hypothesis.title}: these recordings do not tell it apart from "
                        f"{'; '.join(r.hypothesis.title for r in t.rivals[:3])}: they pass too and predict the held-out "
@@ -410,22 +407,27 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
     return out
 
 
-def _relevant(d: Diagnosis, t: Trial) -> list[AxisEvidence]:
-    """The axes where ``t`` would be relevant: the search's rules without significance.
+def _named(result: SearchResult, ex: Explanation | None) -> list[Trial]:
+    """What a diagnosis named: the chosen search's accepted trials, then what explains the paths' change.
 
-    A plausible setting, a contribution above the relevance bound and within the measured displacement, and
-    enough of the held-out error removed.
+    The two are the same trials when the explanation's search is the chosen one; told apart by identity, since
+    a Trial compared by value compares its evidence's arrays.
     """
-    return [e for e in t.evidence.values()
-            if e.setting is not None and e.fit.without is not None and e.relevance_um <= e.effect_rms_um <= e.peak_um
-            and e.gain >= d.options.min_relevant_gain]
+    taken = {id(t) for t in result.accepted}
+    return [*result.accepted, *(t for t in (ex.named if ex else []) if id(t) not in taken)]
 
 
-def _to_decide(d: Diagnosis, t: Trial, tried: int, block_h: float) -> str:
+def _relevant(d: Diagnosis, t: Trial) -> list[AxisEvidence]:
+    """The axes where ``t`` would be relevant were it significant (:func:`gateway.diagnose.search.sized`)."""
+    return [e for e in t.evidence.values() if e.fit.without is not None and sized(e, d.options)]
+
+
+def _to_decide(d: Diagnosis, t: Trial, tried: int, k: int, block_h: float) -> str:
     """For a candidate relevant on an axis but not significant: how much more recording would decide it.
 
     The axis where its blocks improve most consistently, at the multiplicity its test carried (the axes, the
-    hypotheses of the round, the two searches): see :func:`gateway.diagnose.select.blocks_to_decide`.
+    ``tried`` hypotheses of the round, the two searches), against the ``k`` held-out blocks of ``block_h``
+    hours there are: see :func:`gateway.diagnose.select.blocks_to_decide`.
     """
     relevant = _relevant(d, t)
     if not t.verdict.startswith("not significant") or not relevant:
@@ -438,7 +440,6 @@ def _to_decide(d: Diagnosis, t: Trial, tried: int, block_h: float) -> str:
     if m is None:
         return head + ": no amount of recordings like these would decide it"
     hours = m * block_h
-    k = int(d.block.max()) + 1
     # the blocks' length is what makes their sums consistent (more recording in as many blocks is another test):
     # --blocks asks for about that many, each recording gets a few at least, so the option scales with the count
     again = math.ceil(d.options.blocks * (k + m) / k)

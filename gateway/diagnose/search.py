@@ -485,6 +485,16 @@ def _evidence(stack: Stack, axes: Sequence[_Axis], h: Hypothesis,
     return out
 
 
+def sized(e: AxisEvidence, o: Options) -> bool:
+    """Whether ``e`` is large enough to make its hypothesis relevant: :func:`_judge`'s rules of size alone.
+
+    A plausible setting, a contribution above the relevance bound and within the axis's measured displacement,
+    and at least ``min_relevant_gain`` of the held-out error removed; the tests of significance come beside it.
+    """
+    return (e.setting is not None and e.relevance_um <= e.effect_rms_um <= e.peak_um
+            and e.gain >= o.min_relevant_gain)
+
+
 def _judge(t: Trial, o: Options) -> str:
     """Decide which axes join and whether the hypothesis passes; notes say why an axis does not.
 
@@ -492,7 +502,6 @@ def _judge(t: Trial, o: Options) -> str:
     it joins every axis whose held-out blocks it improves consistently and enough: one heat source
     moves the tool in every direction, by more on some axes than on others.
     """
-    relevant = False
     for e in t.evidence.values():
         if e.setting is None:
             e.note = "no plausible setting"
@@ -512,8 +521,7 @@ def _judge(t: Trial, o: Options) -> str:
             elif e.gain < o.min_relevant_gain:
                 e.note = (f"contribution {e.effect_rms_um:.3g} um RMS, but held-out error down only "
                           f"{100 * e.gain:.1f} % (< {100 * o.min_relevant_gain:.0f} % where it is relevant)")
-            else:
-                relevant = True
+    relevant = any(e.included and sized(e, o) for e in t.evidence.values())
     if not t.p_holm < o.alpha:
         for e in t.evidence.values():
             e.included = False
