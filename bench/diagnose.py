@@ -123,6 +123,8 @@ class Effect:
     truth: str = ""  # the simulator's effect name in the truth file
     #: ``[plant] viscous_drag_scale`` of every recording (1: the plant as it is, its ~ speed^2 drag heat on)
     viscous_drag_scale: float = 1.0
+    #: ``cncgw diagnose --use-signal`` columns: recorded signals whose meaning the user has checked
+    use_signals: tuple[str, ...] = ()
 
     @property
     def artefact(self) -> bool:
@@ -154,6 +156,11 @@ EFFECTS: dict[str, Effect] = {
     "slow mode": Effect({"slow_path": {"time_constant_h": 24.0, "um_per_k": {"z": 10.0}}}, ("slow_mode",),
                         truth="slow_path", note="a 24 h part fed by the head, 10 um/K in z"),
     "cabinet": Effect({"cabinet": {"w_per_a2": 2.0}}, ("cabinet",), truth="cabinet", note="2 W per A^2"),
+    # what the report tells a user to do when the cabinet cannot be named (its sum of currents^2 follows the
+    # spindle's stator current): a thermometer in the cabinet, recorded as a column, its meaning checked
+    "cabinet recorded": Effect({"cabinet": {"w_per_a2": 2.0, "thermometer": True}}, ("recorded_signal",),
+                               truth="cabinet", use_signals=("cabinet_c",),
+                               note="2 W per A^2; cabinet_c recorded, diagnosed with --use-signal cabinet_c"),
     "preload": Effect({"bearing_preload": {"gain_per_k": 0.01}}, ("bearing_preload",), truth="bearing_preload",
                       note="1 % more friction per K of bearing over head"),
     "coolant dead time": Effect({"coolant_delay": {"fraction": 0.5, "delay_s": 5400.0, "tank_capacity_kj_per_k": 20.0,
@@ -557,7 +564,8 @@ def run_bench_case(protocol: str, effect_name: str, variant: int, cache: Path, r
             seen = [*exps, *days] if protocol == "new" and not seen_days_only else days
             t0, c0 = time.perf_counter(), time.process_time()
             run_cli(["diagnose", "--profile", PROFILE, "--model", model, *seen, "-o", out, "--force",
-                     *(["--blocks", str(blocks)] if blocks else [])])
+                     *(["--blocks", str(blocks)] if blocks else []),
+                     *(a for col in effect.use_signals for a in ("--use-signal", col))])
             row.diagnose_s, row.diagnose_cpu_s = time.perf_counter() - t0, time.process_time() - c0
             names = diagnosis_names(out)
             row.accepted, row.artefacts, row.names_from = names.accepted, names.artefacts, names.source

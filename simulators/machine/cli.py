@@ -14,7 +14,7 @@ def add_actions(actions: argparse._SubParsersAction) -> None:
         "record", help="run a scenario offline and write its recording and ground truth",
         description="Run a scenario as fast as possible and write DIR/<run>.csv (the recording the gateway "
                     "reads: time_s, the nine factors, measured displacement x_um y_um z_um with sensor noise, "
-                    "room_c if the scenario has a thermometer) and DIR/<run>.truth.csv (noiseless "
+                    "room_c and cabinet_c when the scenario has those thermometers) and DIR/<run>.truth.csv (noiseless "
                     "displacement, node temperatures, heat per source, each effect's contribution; the "
                     "gateway never reads it).")
     rec.add_argument("scenario", metavar="SCENARIO", help="a bundled scenario's name or a scenario TOML file")

@@ -79,6 +79,8 @@ class Cabinet:
     capacity_kj_per_k: float = field(default=60.0, metadata=_m(min=0.0, min_exclusive=True, max=1e5))
     room_w_per_k: float = field(default=15.0, metadata=_m(min=0.0, max=1e4, help="heat exchanger and walls"))
     column_w_per_k: float = field(default=6.0, metadata=_m(min=0.0, min_exclusive=True, max=1e4))
+    thermometer: bool = field(default=False, metadata=_m(
+        help="record the cabinet's air temperature as a column, cabinet_c (a thermometer in the cabinet)"))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -176,7 +178,9 @@ def parse_effect(cls: type, table: Any, node_names: tuple[str, ...]) -> Any:
     values: dict[str, Any] = {}
     for f in dataclasses.fields(cls):
         meta = f.metadata
-        if isinstance(f.default, str):
+        if isinstance(f.default, bool):
+            value = table.bool(f.name, default=f.default)
+        elif isinstance(f.default, str):
             value = table.str(f.name, default=f.default, choices=node_names)
         elif isinstance(f.default, tuple):
             value = _vec3(table, f.name, f.default)
@@ -210,6 +214,8 @@ def describe_effects() -> str:
 
 
 def _toml(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
     if isinstance(value, tuple):
         return "{ " + ", ".join(f"{a} = {v!r}" for a, v in zip(AXES, value, strict=True)) + " }"
     if isinstance(value, str):

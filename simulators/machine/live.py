@@ -38,8 +38,8 @@ class LiveMachine:
     """A scenario running against a clock; thread-safe.
 
     ``values(t)`` gives the nine drive channels, the displacement sensors (``x_um``, ``y_um``, ``z_um``:
-    what the capacitive sensors read, noise and artefacts included) and, when the scenario has a room
-    thermometer, ``room_c``.
+    what the capacitive sensors read, noise and artefacts included) and the thermometers the scenario has:
+    ``room_c`` (the room's), ``cabinet_c`` (the cabinet's air, ``[effects.cabinet] thermometer``).
     """
 
     def __init__(self, scenario: Scenario | str | Path, *, clock: Clock | None = None,
@@ -60,7 +60,9 @@ class LiveMachine:
         self._noise_row, self._noise = -1, np.zeros(3)
         self._lock = threading.RLock()
         names = CHANNELS + DISPLACEMENT_CHANNELS
-        self._names = (*names, "room_c") if self.scenario.room.thermometer else names
+        self._room_c = self.scenario.room.thermometer
+        self._cabinet_c = (cab := self.scenario.effects.cabinet) is not None and cab.thermometer
+        self._names = (*names, *(["room_c"] if self._room_c else []), *(["cabinet_c"] if self._cabinet_c else []))
 
     # -- LiveSource --------------------------------------------------------------------------------------
     def channel_names(self) -> tuple[str, ...]:
@@ -72,8 +74,10 @@ class LiveMachine:
             out = self._drives.values(t)
             measured = self._measured(t)
             out |= {f"{a}_um": float(measured[i]) for i, a in enumerate(AXES)}
-            if self.scenario.room.thermometer:
+            if self._room_c:
                 out["room_c"] = float(room_temperature(self.scenario, np.array([t]))[0])
+            if self._cabinet_c:
+                out["cabinet_c"] = self.temperatures_c(t)["cabinet"]
             return out
 
     def set_compensation(self, offsets_um: Mapping[str, float]) -> None:

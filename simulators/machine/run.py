@@ -4,7 +4,7 @@
 (mean speed, mean of each current squared, mean |feed|), their heat drives the thermal network, and the
 network gives the tool-to-table displacement sampled at the window's end, as the paper measures it.
 :func:`write_run` writes ``<run>.csv`` in the project's recording format (factors, measured displacement
-with sensor noise and artefacts, the room thermometer when the scenario has one) and ``<run>.truth.csv``
+with sensor noise and artefacts, the room and cabinet thermometers the scenario has) and ``<run>.truth.csv``
 beside it: noiseless displacement, node temperatures, heat per source and each effect's contribution.
 The gateway's commands never read the truth file.
 """
@@ -112,9 +112,14 @@ class SimulationResult:
     def recording_columns(self) -> dict[str, np.ndarray]:
         cols = dict(self.factors)
         cols |= {f"{a}_um": self.measured_um[:, i] for i, a in enumerate(AXES)}
-        if self.scenario.room.thermometer:
-            cols["room_c"] = self.room_c
-        return cols
+        return cols | self.thermometers()
+
+    def thermometers(self) -> dict[str, np.ndarray]:
+        """The recorded temperatures: ``room_c`` (a room thermometer), ``cabinet_c`` (one in the cabinet)."""
+        out = {"room_c": self.room_c} if self.scenario.room.thermometer else {}
+        if (cab := self.scenario.effects.cabinet) is not None and cab.thermometer:
+            out["cabinet_c"] = self.temperatures_c[:, self.node_names.index("cabinet")]
+        return out
 
     def recording(self, which: str = "measured") -> Recording:
         """The run as a gateway :class:`~gateway.recording.Recording`.
@@ -125,7 +130,7 @@ class SimulationResult:
         if which not in ("measured", "true"):
             raise ValueError(f"which must be 'measured' or 'true'. Got {which!r}")
         disp = self.measured_um if which == "measured" else self.true_um
-        extras = {"room_c": self.room_c} if self.scenario.room.thermometer else {}
+        extras = self.thermometers()
         return Recording(source=f"{self.scenario.name}.csv", period_s=self.machine.window_s, time_s=self.stamps_s,
                          present=np.ones(len(self.time_s), dtype=bool), factors=self.factors,
                          displacement={a: disp[:, i].copy() for i, a in enumerate(AXES)}, extras=extras,
