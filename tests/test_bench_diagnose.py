@@ -71,6 +71,19 @@ def test_schedules_and_noise_depend_on_the_variant_not_the_effect(bench):
     assert other["fresh"].seed != b["fresh"].seed
 
 
+def test_the_cabinet_followed_advice_case_is_the_cabinet_case_with_its_thermometer(bench):
+    """The report's advice followed: the same recordings, a thermometer in the cabinet, the column allowed."""
+    cab, rec = _parse(bench.new_plan("cabinet", 2)), _parse(bench.new_plan("cabinet recorded", 2))
+    assert cab.keys() == rec.keys()
+    for name, sc in rec.items():
+        assert sc.effects.cabinet.thermometer
+        assert not cab[name].effects.cabinet.thermometer
+        assert dataclasses.replace(sc.effects.cabinet, thermometer=False) == cab[name].effects.cabinet
+        assert dataclasses.replace(sc, effects=cab[name].effects) == cab[name], name
+    assert bench.EFFECTS["cabinet recorded"].use_signals == ("cabinet_c",)
+    assert bench.is_family("recorded_signal:cabinet_c on z", bench.EFFECTS["cabinet recorded"].families)
+
+
 def test_the_sensor_step_is_in_one_experiment_and_two_days_never_the_fresh_day(bench):
     plan = _parse(bench.new_plan("sensor step", 1))
     stepped = sorted(n for n, sc in plan.items() if sc.effects.sensor_artefacts is not None)

@@ -30,6 +30,9 @@ thermometer = true
 [effects.room_cycle]
 amplitude_k = 1.0
 [effects.eddy_loss]
+[effects.cabinet]
+w_per_a2 = 2.0
+thermometer = true
 [segments.cut]
 minutes = 20
 spindle_rpm = [400, 600]
@@ -67,7 +70,7 @@ def test_record_writes_a_recording_the_gateway_reads_and_a_truth_file(tmp_path: 
     for i, a in enumerate(AXES):
         np.testing.assert_array_equal(rec.displacement[a], result.measured_um[:, i])
     np.testing.assert_array_equal(rec.extras["room_c"], result.room_c)
-    assert set(rec.extras) == {"room_c"}  # nothing else: the effects are not in the recording
+    assert set(rec.extras) == {"room_c", "cabinet_c"}  # the thermometers only: the effects are not in the recording
     assert rec.meta["scenario"] == "small"
     text = (out / "small.csv").read_text()
     assert "eddy" not in text
@@ -78,8 +81,11 @@ def test_record_writes_a_recording_the_gateway_reads_and_a_truth_file(tmp_path: 
     assert "effect_eddy_loss_z_um" in truth.extras
     assert "effect_room_cycle_y_um" in truth.extras
     assert "temp_bearing_c" in truth.extras
+    # the cabinet's thermometer reads its air: the node's temperature, warmer than the room while the spindle runs
+    np.testing.assert_array_equal(rec.extras["cabinet_c"], truth.extras["temp_cabinet_c"])
+    assert rec.extras["cabinet_c"].max() > rec.extras["room_c"].max() + 1.0
     assert "heat_rotor_joule_w" in truth.extras
-    assert truth.meta["effects"] == "room_cycle, eddy_loss"
+    assert truth.meta["effects"] == "room_cycle, eddy_loss, cabinet"
 
 
 def test_start_time_stamps_the_recording_and_changes_nothing_else(tmp_path: Path):
@@ -142,6 +148,7 @@ def test_list_names_every_bundled_scenario(capsys):
     assert "spindle-400-600rpm        12.0 h  identification: spindle alternating 400/600 rpm" in out
     assert "[effects.coolant_delay]" in out
     assert "  um_per_k = { x = 0.0, y = 0.0, z = 10.0 }" in out
+    assert "  thermometer = false  # record the cabinet's air temperature as a column, cabinet_c" in out
 
 
 # -- live ----------------------------------------------------------------------------------------------------
@@ -151,7 +158,7 @@ def test_live_source_gives_the_offline_factors_sample_by_sample():
     clock = ManualClock()
     live = LiveMachine(sc, clock=clock)
     assert isinstance(live, LiveSource)
-    assert live.channel_names() == (*CHANNELS, "x_um", "y_um", "z_um", "room_c")
+    assert live.channel_names() == (*CHANNELS, "x_um", "y_um", "z_um", "room_c", "cabinet_c")
     # a gateway sampler: every 2 ms through window 5 (the spindle starts alternating, the table starts)
     n = 30000
     w = 5
@@ -178,6 +185,7 @@ def test_live_source_gives_the_offline_factors_sample_by_sample():
         for i, a in enumerate(AXES):
             assert v[f"{a}_um"] == pytest.approx(offline.measured_um[k, i], abs=1e-9)
         assert v["room_c"] == pytest.approx(offline.room_c[k], abs=1e-12)
+        assert v["cabinet_c"] == pytest.approx(offline.recording_columns()["cabinet_c"][k], abs=1e-9)
     mine = live.window_factors()
     for name in FACTORS:
         np.testing.assert_allclose(mine[name], f[name], rtol=1e-12, atol=1e-12)

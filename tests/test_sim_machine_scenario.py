@@ -140,3 +140,14 @@ def test_scenario_by_path_and_effect_switch(tmp_path: Path):
     assert sc.name == "mine"
     assert sc.effects.enabled == ("eddy_loss",)
     assert sc.effects.eddy_loss.loss_w_at_1000rpm == 15.0
+    assert sc.effects.cabinet is None
+
+
+def test_a_thermometer_switch_that_is_not_true_or_false_is_named(tmp_path: Path):
+    path = tmp_path / "cab.toml"
+    path.write_text("[segments.a]\nminutes = 1\n[effects.cabinet]\nthermometer = 1\n")
+    with pytest.raises(SimulationError) as err:
+        load_scenario(str(path))
+    assert f"{path}:4: effects.cabinet.thermometer: expected true or false, got 1 (an integer)" in str(err.value)
+    path.write_text("[segments.a]\nminutes = 1\n[effects.cabinet]\nthermometer = true\n")
+    assert load_scenario(str(path)).effects.cabinet.thermometer is True
