@@ -146,6 +146,7 @@ class Effect:
 
 
 ROOM = {"amplitude_k": 1.5, "drift_k_per_h": 0.02}
+CABINET_COOLED = {"w_per_a2": 3.0, "cooler_w": 120.0, "cooler_on_k": 4.0, "cooler_off_k": 2.5}
 EFFECTS: dict[str, Effect] = {
     "room recorded": Effect({"room_cycle": ROOM}, ("room_recorded",), thermometer=True, truth="room_cycle",
                             note="daily 3 K swing, 0.02 K/h drift; room_c recorded"),
@@ -161,6 +162,13 @@ EFFECTS: dict[str, Effect] = {
     "cabinet recorded": Effect({"cabinet": {"w_per_a2": 2.0, "thermometer": True}}, ("recorded_signal",),
                                truth="cabinet", use_signals=("cabinet_c",),
                                note="2 W per A^2; cabinet_c recorded, diagnosed with --use-signal cabinet_c"),
+    # a cabinet with a cooling unit under a thermostat: its air saws between 2.5 and 4 K over the hall while the
+    # machine works, so it no longer follows the currents alone (unrecorded, and recorded as the advice says)
+    "cabinet cooled": Effect({"cabinet": CABINET_COOLED}, ("cabinet",), truth="cabinet",
+                             note="3 W per A^2, a 120 W cooling unit on at +4 K, off at +2.5 K"),
+    "cabinet cooled recorded": Effect({"cabinet": {**CABINET_COOLED, "thermometer": True}}, ("recorded_signal",),
+                                      truth="cabinet", use_signals=("cabinet_c",),
+                                      note="the cooled cabinet; cabinet_c recorded, --use-signal cabinet_c"),
     "preload": Effect({"bearing_preload": {"gain_per_k": 0.01}}, ("bearing_preload",), truth="bearing_preload",
                       note="1 % more friction per K of bearing over head"),
     "coolant dead time": Effect({"coolant_delay": {"fraction": 0.5, "delay_s": 5400.0, "tank_capacity_kj_per_k": 20.0,

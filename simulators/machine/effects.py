@@ -71,7 +71,10 @@ class SlowPath:
 class Cabinet:
     """Control cabinet and servo amplifiers.
 
-    Losses ~ the sum of the motor currents squared, bolted to the back of the column.
+    Losses ~ the sum of the motor currents squared, bolted to the back of the column. With ``cooler_w`` a
+    cooling unit under a thermostat (on above ``cooler_on_k`` over the hall, off below ``cooler_off_k``) takes
+    heat out while it runs: the cabinet's temperature then saws between the two and no longer follows the
+    currents alone.
     """
 
     w_per_a2: float = field(default=0.3,
@@ -79,6 +82,12 @@ class Cabinet:
     capacity_kj_per_k: float = field(default=60.0, metadata=_m(min=0.0, min_exclusive=True, max=1e5))
     room_w_per_k: float = field(default=15.0, metadata=_m(min=0.0, max=1e4, help="heat exchanger and walls"))
     column_w_per_k: float = field(default=6.0, metadata=_m(min=0.0, min_exclusive=True, max=1e4))
+    cooler_w: float = field(default=0.0, metadata=_m(
+        min=0.0, max=1e4, help="a cooling unit's heat removal while it runs (0: none); a thermostat switches it"))
+    cooler_on_k: float = field(default=4.0, metadata=_m(
+        min=0.0, min_exclusive=True, max=100.0, help="it starts when the cabinet is this much warmer than the hall"))
+    cooler_off_k: float = field(default=2.5, metadata=_m(
+        min=0.0, max=100.0, help="and stops when the cabinet has cooled to this much above the hall"))
     thermometer: bool = field(default=False, metadata=_m(
         help="record the cabinet's air temperature as a column, cabinet_c (a thermometer in the cabinet)"))
 

@@ -375,6 +375,9 @@ def _parse_effects(root: Table, machine: MachineParams) -> Effects:
             continue
         enabled = sub.bool("enabled", default=True)
         value = parse_effect(EFFECTS[name], sub, node_names)
+        if name == "cabinet" and value.cooler_w > 0 and not value.cooler_off_k < value.cooler_on_k:
+            sub.problem("cooler_off_k", f"expected below cooler_on_k ({value.cooler_on_k:g} K: the thermostat stops "
+                                        f"the cooling unit below where it starts it), got {value.cooler_off_k:g}")
         sub.done()
         if enabled:
             on[name] = value

@@ -5,9 +5,10 @@ capacities, K the conductance matrix (links between nodes plus each node's loss 
 diagonal), q the heat inputs and r the room's deviation from its base. Heat and room are constant over a
 window (the window means the CNC computes), so each window is integrated exactly with one matrix
 exponential (zero-order hold), computed once: ``T_{k+1} = Ad T_k + Gam q_k``. The coolant loop's dead time
-is exact too, including a fraction of a window (the same split as ``gateway.model.discrete``). Two
-effects depend on the state (bearing preload, chiller); they are evaluated with the temperatures at the
-start of each window, whose error is small because their rates are below a tenth of a window.
+is exact too, including a fraction of a window (the same split as ``gateway.model.discrete``). Three
+effects depend on the state (bearing preload, chiller, the cabinet's thermostat); they are evaluated with the
+temperatures at the start of each window, whose error is small because their rates are below a tenth of a
+window (the thermostat switches at a window's start).
 
 Displacement (um) is ``S (T - T0)``: the paper measures relative to the start, after > 24 h at rest, so
 the reference T0 is the equilibrium at rest (the Z motor's holding current keeps a little heat flowing)
@@ -208,6 +209,7 @@ class ThermalStepper:
         self.k = 0
         self._coolant: list[float] = []  # heat handed to the coolant per window (W), for the dead time
         self._gate = 0.0  # chiller build-up, 0..1
+        self._cooler = False  # the cabinet's cooling unit running
         self.extra_w: dict[str, float] = {}
 
     def step(self, stats: np.ndarray, room_dev_k: float) -> np.ndarray:
@@ -237,6 +239,14 @@ class ThermalStepper:
             removed = mean * ch.conductance_w_per_k * (T[i] - room_dev_k)
             q[i] -= removed
             self.extra_w["chiller"] = -removed
+        if (cab := eff.cabinet) is not None and cab.cooler_w > 0:
+            # the thermostat reads the cabinet's rise over the hall at the window's start: on above cooler_on_k,
+            # off below cooler_off_k, as it was in between (a window is short against its cycle)
+            rise = T[net.index("cabinet")] - room_dev_k
+            self._cooler = rise > cab.cooler_on_k or (self._cooler and rise > cab.cooler_off_k)
+            removed = cab.cooler_w if self._cooler else 0.0
+            q[net.index("cabinet")] -= removed
+            self.extra_w["cabinet_cooler"] = -removed
         T_new = m.Ad @ T + m.Gam @ q
         if m._delay is not None:
             lag, g_recent, g_older = m._delay
