@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import scipy.integrate
 
+from gateway.errors import SimulationError
 from simulators.machine.drives import STAT_INDEX
 from simulators.machine.effects import Effects
 from simulators.machine.params import AXES, DEFAULT_MACHINE, RAD_PER_RPM
@@ -158,6 +159,42 @@ def test_cabinet_heat_follows_the_currents_squared():
     c = r.contributions_um["cabinet"]
     assert c[row(120), Y] > 0.3  # a warm column back leans the column forward: +y
     assert c[row(120), Z] > 0.0
+
+
+def test_a_cabinet_cooler_holds_the_cabinet_between_its_thermostat_points():
+    """The cooling unit saws the cabinet between off and on over the hall while the spindle runs hard, never at rest."""
+    hard = SPINDLE_2000.replace("minutes = 60\nspindle_rpm = 2000", "minutes = 240\nspindle_rpm = 3000")
+    cab = "[effects.cabinet]\nw_per_a2 = 2.0\nthermometer = true\n"
+    free = run(hard + cab)
+    cooled = run(hard + cab + "cooler_w = 150.0\ncooler_on_k = 4.0\ncooler_off_k = 2.5\n")
+    i = free.node_names.index("cabinet")
+    during = slice(row(60), row(30 + 240))  # the spindle runs from 30 to 270 min
+    assert free.temperatures_c[during, i].max() > 20.0 + 6.0  # without it the cabinet would pass 26 C
+    hall = 20.0
+    on = cooled.heat_w["cabinet_cooler"] < 0
+    assert set(np.unique(cooled.heat_w["cabinet_cooler"])) == {-150.0, 0.0}
+    # it starts only above +4 K and stops only below +2.5 K (read at a window's start: within a window's change)
+    rise = cooled.temperatures_c[:, i] - hall
+    before = np.concatenate([[rise[0]], rise[:-1]])  # the rise at each window's start
+    started = on & ~np.concatenate([[False], on[:-1]])
+    stopped = ~on & np.concatenate([[False], on[:-1]])
+    assert started.sum() >= 3
+    assert stopped.sum() >= 3
+    assert np.all(before[started] > 4.0)
+    assert np.all(before[stopped] < 2.5)
+    assert rise[during].max() < 4.5
+    assert not on[: row(30)].any()  # at rest (the Z holding current only) it never runs
+    assert not on[row(30 + 240 + 60):].any()
+    np.testing.assert_array_equal(cooled.thermometers()["cabinet_c"], cooled.temperatures_c[:, i])
+    # the column feels less of the cabinet: the effect on y is held down with it
+    assert cooled.contributions_um["cabinet"][during, Y].max() < 0.7 * free.contributions_um["cabinet"][during, Y].max()
+
+
+def test_a_cooler_that_stops_above_where_it_starts_is_refused():
+    with pytest.raises(SimulationError) as err:
+        parse_scenario_text(SPINDLE_2000 + "[effects.cabinet]\ncooler_w = 100.0\ncooler_on_k = 3.0\ncooler_off_k = 5.0\n")
+    assert "effects.cabinet.cooler_off_k: expected below cooler_on_k (3 K" in str(err.value)
+    assert "got 5" in str(err.value)
 
 
 def test_bearing_preload_feeds_back_on_friction_heat():
