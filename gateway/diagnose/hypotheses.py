@@ -367,8 +367,9 @@ def _cabinet(ctx: _Ctx) -> list[Hypothesis]:
                      "to the column; it warms the column through a slow lag. No factor carries it: every "
                      "current factor heats its own motor, not the cabinet."),
         settings={a: grid for a in ctx.axes}, shared=("tau_s", "tau_fast_s", "tau_slow_s"),
-        # measured (bench/diagnose.py "cabinet recorded", variants 1-7): a cabinet thermometer whose reading only
-        # follows the currents named nothing, every verdict as without it: it carries nothing the paths lack
+        # measured (bench/diagnose.py, variants 1-7): a cabinet thermometer whose reading only follows the
+        # currents ("cabinet recorded") named nothing, every verdict as without it; one in a cabinet whose
+        # cooling unit switches ("cabinet cooled recorded") was named in 6 of 7
         tell_apart=("record the cabinet's air temperature as a column and diagnose with --use-signal: that tells "
                     "them apart only where it varies for reasons of its own (its cooling unit switching, the "
                     "door, the hall), since a cabinet that merely follows the currents adds nothing the paths "
