@@ -406,9 +406,7 @@ def _chiller(ctx: _Ctx) -> list[Hypothesis]:
                         for d, land, label in late:
                             loop[a].append(Setting(
                                 params=(("path_shape", f), ("proxy", proxy), ("motor_tau_s", tau), *d, *land[0]),
-                                # taken at the motor: against the motor's own path; where it lands (a
-                                # tank, a casting) may move an axis either way: its sign is free
-                                chain=(flag, prod), signs=(-1, 0),
+                                chain=(flag, prod), signs=(-1, 1),
                                 components=(Component((Part(prod.name, shape),), f"taken at the motor, as {f}"),
                                             Component((Part(prod.name, land[1], d[0][1]),), label))))
         out.append(Hypothesis(
