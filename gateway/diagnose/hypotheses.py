@@ -406,6 +406,10 @@ def _chiller(ctx: _Ctx) -> list[Hypothesis]:
                         for d, land, label in late:
                             loop[a].append(Setting(
                                 params=(("path_shape", f), ("proxy", proxy), ("motor_tau_s", tau), *d, *land[0]),
+                                # the late heat's sign is held positive: free (a tank that moves an axis
+                                # the other way), the bench's no-effect cases none v3 and none v7 and four
+                                # effect cases took a coolant loop that is not there, and no coolant case
+                                # gained its name (measured 2 Dec, variants 1-7)
                                 chain=(flag, prod), signs=(-1, 1),
                                 components=(Component((Part(prod.name, shape),), f"taken at the motor, as {f}"),
                                             Component((Part(prod.name, land[1], d[0][1]),), label))))
