@@ -60,9 +60,7 @@ class LiveMachine:
         self._noise_row, self._noise = -1, np.zeros(3)
         self._lock = threading.RLock()
         names = CHANNELS + DISPLACEMENT_CHANNELS
-        self._room_c = self.scenario.room.thermometer
-        self._cabinet_c = (cab := self.scenario.effects.cabinet) is not None and cab.thermometer
-        self._names = (*names, *(["room_c"] if self._room_c else []), *(["cabinet_c"] if self._cabinet_c else []))
+        self._names = (*names, *self.scenario.thermometers)
 
     # -- LiveSource --------------------------------------------------------------------------------------
     def channel_names(self) -> tuple[str, ...]:
@@ -74,10 +72,9 @@ class LiveMachine:
             out = self._drives.values(t)
             measured = self._measured(t)
             out |= {f"{a}_um": float(measured[i]) for i, a in enumerate(AXES)}
-            if self._room_c:
-                out["room_c"] = float(room_temperature(self.scenario, np.array([t]))[0])
-            if self._cabinet_c:
-                out["cabinet_c"] = self.temperatures_c(t)["cabinet"]
+            for name in self.scenario.thermometers:
+                out[name] = (float(room_temperature(self.scenario, np.array([t]))[0]) if name == "room_c"
+                             else self.temperatures_c(t)["cabinet"])
             return out
 
     def set_compensation(self, offsets_um: Mapping[str, float]) -> None:

@@ -116,10 +116,9 @@ class SimulationResult:
 
     def thermometers(self) -> dict[str, np.ndarray]:
         """The recorded temperatures: ``room_c`` (a room thermometer), ``cabinet_c`` (one in the cabinet)."""
-        out = {"room_c": self.room_c} if self.scenario.room.thermometer else {}
-        if (cab := self.scenario.effects.cabinet) is not None and cab.thermometer:
-            out["cabinet_c"] = self.temperatures_c[:, self.node_names.index("cabinet")]
-        return out
+        read = {"room_c": lambda: self.room_c,
+                "cabinet_c": lambda: self.temperatures_c[:, self.node_names.index("cabinet")]}
+        return {name: read[name]() for name in self.scenario.thermometers}
 
     def recording(self, which: str = "measured") -> Recording:
         """The run as a gateway :class:`~gateway.recording.Recording`.

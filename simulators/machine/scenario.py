@@ -115,6 +115,13 @@ class Scenario:
     def duration_h(self) -> float:
         return self.duration_s / 3600.0
 
+    @property
+    def thermometers(self) -> tuple[str, ...]:
+        """The temperature columns its recordings carry: ``room_c`` (a room thermometer), ``cabinet_c``."""
+        cab = self.effects.cabinet
+        return (*(("room_c",) if self.room.thermometer else ()),
+                *(("cabinet_c",) if cab is not None and cab.thermometer else ()))
+
 
 # --------------------------------------------------------------------------------------------------------
 def bundled_scenarios() -> list[str]:

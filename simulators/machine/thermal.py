@@ -242,10 +242,11 @@ class ThermalStepper:
         if (cab := eff.cabinet) is not None and cab.cooler_w > 0:
             # the thermostat reads the cabinet's rise over the hall at the window's start: on above cooler_on_k,
             # off below cooler_off_k, as it was in between (a window is short against its cycle)
-            rise = T[net.index("cabinet")] - room_dev_k
+            i = net.index("cabinet")
+            rise = T[i] - room_dev_k
             self._cooler = rise > cab.cooler_on_k or (self._cooler and rise > cab.cooler_off_k)
             removed = cab.cooler_w if self._cooler else 0.0
-            q[net.index("cabinet")] -= removed
+            q[i] -= removed
             self.extra_w["cabinet_cooler"] = -removed
         T_new = m.Ad @ T + m.Gam @ q
         if m._delay is not None:
