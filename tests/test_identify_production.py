@@ -91,8 +91,10 @@ def test_a_run_that_starts_warm_is_fitted_with_free_decays(data):
     warm = Recording(source="warm.csv", period_s=day.period_s, time_s=day.time_s[start:],
                      present=day.present[start:], factors={k: v[start:] for k, v in day.factors.items()},
                      displacement={k: v[start:] for k, v in day.displacement.items()})
-    as_rest = identify(train, factors=profile.factor_names, axes=profile.axes, production=[warm]).model
-    fitted = identify(train, factors=profile.factor_names, axes=profile.axes, production=[warm],
+    # y alone: the worst axis either way (measured on all three: y 38.1 % at rest, 7.9 % fitted; z 30.6 %, 2.6 %;
+    # x under 5 um), the same figures as fitted with the others, in a quarter of the time
+    as_rest = identify(train, factors=profile.factor_names, axes=("y",), production=[warm]).model
+    fitted = identify(train, factors=profile.factor_names, axes=("y",), production=[warm],
                       production_initial="fit").model
     assert worst(fitted, held) < 10.0
     assert worst(fitted, held) < 0.5 * worst(as_rest, held)
