@@ -69,6 +69,8 @@ class Comparison:
     scheme: str = ""  # what was held out, in words
     folds: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))  # what each window's fit leaves out
     score: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))  # the scored block of each window
+    #: the level at which one candidate is preferred to another (one-sided signed rank over the blocks)
+    alpha: float = 0.05
 
     @property
     def written(self) -> Candidate:
@@ -121,7 +123,7 @@ def compare(stack: Stack, model: ThermalModel, block: np.ndarray, accepted: Sequ
     for c in cands.values():
         if c.key == chosen and c is not base:
             c.verdict += "; written"
-    return Comparison(candidates=cands, chosen=chosen, scheme=scheme, folds=folds, score=score)
+    return Comparison(candidates=cands, chosen=chosen, scheme=scheme, folds=folds, score=score, alpha=options.alpha)
 
 
 def _candidate(stack: Stack, block: np.ndarray, folds: np.ndarray, score: np.ndarray, *, key: str, title: str,

@@ -14,8 +14,8 @@ error. Measured on the bench: a term that merely adds freedom (eddy loss) recove
 cases and 97 % beside an absorbed chiller, the slow mode 99.1 % and more (a thin margin). Named, its model is
 written when it predicts the held-out data no worse than the re-identified one. Not named, it is still
 written when it predicts the held-out blocks significantly better than the re-identified model (one-sided
-signed rank over the blocks at ``alpha``, the rule by which the comparison prefers one candidate to another):
-the best model that passes is the one written. Measured: the slow mode on plant variant 4 (98 % of the change,
+signed rank over the blocks at the comparison's ``alpha``, the rule by which it prefers one candidate to
+another): the best model that passes is the one written. Measured: the slow mode on plant variant 4 (98 % of the change,
 p = 0.0005 against the re-identified model; fresh-day z 3.92 -> 0.39 um) is written; the eddy loss of the
 no-effect cases of variants 1 and 2 (p = 0.32, 0.14; it would have made their fresh day worse) and the absorbed
 chiller's (p = 0.35) are not. The report says what the re-identified paths changed either way; when nothing
@@ -205,8 +205,10 @@ def explain(stack: Stack, model: ThermalModel, reid: Reidentified, comparison: C
         # it does not explain all the paths' change, but the best model that passes is the one written: when it
         # predicts the held-out blocks significantly better than the re-identified model (the rule by which the
         # comparison prefers one candidate to another), it is, its term with it
+        # (at the comparison's level, not the held search's share of it: this is one more pairwise choice between
+        # two candidates, as the comparison makes, not a hypothesis among many)
         p_reid = one_sided_p(_informative(reid_c.block_sse, cand.block_sse))
-        if cand.sse < reid_c.sse and p_reid < options.alpha:
+        if cand.sse < reid_c.sse and p_reid < comparison.alpha:
             out.written_unexplained = True
             result.accepted = list(accepted)  # what is written is what the search's record says was taken
             _write(comparison, cand, "predicts the held-out blocks significantly better than the re-identified "
