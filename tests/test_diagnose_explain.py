@@ -223,3 +223,26 @@ def test_a_term_that_explains_less_than_all_is_still_written_when_it_predicts_si
     assert "missing physics: slow thermal mode" in text
     assert "does not explain all of it" in text
     assert "no family is named" not in text
+
+
+def test_the_model_that_explains_less_than_all_is_written_at_the_comparisons_level(monkeypatch):
+    # diagnose runs the held search at its share of alpha (alpha / 2 beside the frozen and refit searches); the
+    # choice between the re-identified model and the one with the term is one more pairwise choice, made at the
+    # comparison's level as every other such choice is: a level out of reach there keeps what it chose
+    import gateway.diagnose.explain as explain_mod
+
+    d, _ = _diagnosed(monkeypatch, slow=True)
+    monkeypatch.setattr(explain_mod, "EXPLAINED_SHARE", 1.01)
+    arts = {a: [s.column(d.stack) for s in f.steps] for a, f in d.findings.items()}
+    half = replace(d.options, alpha=d.options.alpha / 2, alpha_axis=d.options.alpha_axis / 2)
+    assert d.comparison.alpha == d.options.alpha == 0.05
+    strict = replace(d.comparison, candidates=dict(d.comparison.candidates), alpha=1e-6)
+    ex = explain(d.stack, d.model, d.reidentified, strict, d.hypotheses, block=d.block, artefacts=arts,
+                 options=half, writable=lambda t: True)
+    assert [t.hypothesis.key.split(":")[0] for t in ex.result.accepted] == ["slow_mode"]  # passed the held search
+    assert not ex.written_unexplained, ex.verdict
+    assert strict.chosen == d.comparison.chosen != "explained"
+    ex = explain(d.stack, d.model, d.reidentified, d.comparison, d.hypotheses, block=d.block, artefacts=arts,
+                 options=half, writable=lambda t: True)
+    assert ex.written_unexplained, ex.verdict
+    assert d.comparison.chosen == "explained"
