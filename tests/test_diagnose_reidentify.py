@@ -169,6 +169,13 @@ def test_validation_starts_from_the_day_before_or_from_a_fitted_state(plant_data
     (carried,) = validate(d, [after_day4], earlier=days)
     assert carried.start.startswith("carried from day1, day2, day3, day4")
     assert carried.settings["history"] == "day4.csv"
+    # the same two days as runs of one file split by its day column (--split-by day): each starts in its own
+    # equilibrium, as the diagnosis took them, though the times run on from one to the next
+    run4, run5 = (replace(r, source=f"days.csv[day={k}]") for k, r in ((4, days[3]), (5, after_day4)))
+    (split,) = validate(d, [run5], earlier=[run4])
+    assert split.label == "day 5"
+    assert split.start == "at rest (it starts with the machine in equilibrium)"
+    assert "history" not in split.settings
     warm = after_day4.slice(600, 1440)  # starts mid-work, nothing before it
     (fitted,) = validate(d, [warm])
     assert fitted.settings["initial_state"] == "fit"

@@ -22,7 +22,7 @@ from gateway import __version__
 from gateway.diagnose.adequacy import Adequacy, assess
 from gateway.diagnose.compare import Comparison, compare
 from gateway.diagnose.confusable import Confusion, confusions
-from gateway.diagnose.data import Stack, build_stack, recording_label
+from gateway.diagnose.data import Stack, build_stack, recording_label, split_part
 from gateway.diagnose.explain import Explanation, explain, held_corrections
 from gateway.diagnose.extend import extend_model
 from gateway.diagnose.hypotheses import FactorInfo, Hypothesis, catalogue
@@ -520,11 +520,17 @@ def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence
 
 
 def _preceding(rec: Recording, pool: Sequence[Recording]) -> list[Recording]:
-    """The recordings that ran just before ``rec``, each ending one window before the next starts, oldest first."""
+    """The recordings that ran just before ``rec``, each ending one window before the next starts, oldest first.
+
+    Two runs of a file split by a column (``--split-by``: ``file.csv[day=7]``) never: each starts in its own
+    equilibrium, as the diagnosis took them. Their times run on across the cut (a file of days written one
+    after the other, or times counted from ``--period-s``) whether or not the machine rested between them.
+    """
     chain: list[Recording] = []
     cur = rec
     while True:
         prev = next((p for p in pool if p is not cur and p not in chain and len(p) and len(cur)
+                     and not (split_part(p.source) and split_part(cur.source))
                      and abs(p.period_s - cur.period_s) < 1e-9 * cur.period_s
                      and 0.5 * cur.period_s < cur.time_s[0] - p.time_s[-1] <= 1.5 * cur.period_s), None)
         if prev is None:

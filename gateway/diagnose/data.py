@@ -314,9 +314,15 @@ def log_grid(lo: float, hi: float, per_decade: float = 5.0) -> list[float]:
     return [float(v) for v in np.geomspace(lo, hi, n)]
 
 
+def split_part(source: str) -> tuple[str, str] | None:
+    """(column, value) of a run of a file split by a column (``file.csv[day=7]``, see ``--split-by``), else None."""
+    m = re.search(r"\[([^=\]]+)=([^\]]+)\]$", source)
+    return (m.group(1), m.group(2)) if m else None
+
+
 def recording_label(source: str) -> str:
     """A short name for a recording: its file's stem, or "day 7" for the part of a file split by a column."""
-    m = re.search(r"\[([^=\]]+)=([^\]]+)\]$", source)
-    if m:
-        return f"{m.group(1)} {m.group(2)}"
+    part = split_part(source)
+    if part:
+        return f"{part[0]} {part[1]}"
     return Path(source).stem if source else "recording"
