@@ -242,6 +242,10 @@ def test_the_model_that_explains_less_than_all_is_written_at_the_comparisons_lev
     assert [t.hypothesis.key.split(":")[0] for t in ex.result.accepted] == ["slow_mode"]  # passed the held search
     assert not ex.written_unexplained, ex.verdict
     assert strict.chosen == d.comparison.chosen != "explained"
+    # the table shows it beside the re-identified model with a lower error: its verdict says why it is not written
+    verdict = strict.candidates["explained"].verdict
+    assert "lower held-out error than the re-identified model, but not significantly over the blocks" in verdict
+    assert verdict.endswith("1e-06 needed): not written")
     ex = explain(d.stack, d.model, d.reidentified, d.comparison, d.hypotheses, block=d.block, artefacts=arts,
                  options=half, writable=lambda t: True)
     assert ex.written_unexplained, ex.verdict

@@ -215,6 +215,11 @@ def explain(stack: Stack, model: ThermalModel, reid: Reidentified, comparison: C
                    f"model (p = {p_reid:.2g})")
             out.verdict += (f"; but the model with it predicts the held-out blocks significantly better than the "
                             f"re-identified one (p = {p_reid:.2g}) and is written")
+        else:
+            # the table shows both; say why the one with the lower error is not the one written
+            than = ("lower held-out error than the re-identified model, but not significantly over the blocks"
+                    if cand.sse < reid_c.sse else "no lower held-out error than the re-identified model")
+            cand.verdict += f"; {than} (p = {p_reid:.2g}, {comparison.alpha:g} needed): not written"
     else:
         out.named = accepted
         result.accepted = list(accepted)  # what is named is what the search's record says was taken
