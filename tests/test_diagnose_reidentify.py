@@ -10,6 +10,8 @@ figure a user gets comes from the written model through ``estimate``.
 from __future__ import annotations
 
 import json
+import re
+import shlex
 from dataclasses import replace
 
 import numpy as np
@@ -214,6 +216,11 @@ def test_the_written_model_reproduces_the_reported_validation_through_cncgw_esti
     assert "## Models compared on held-out data" in md
     assert md.index("## Verdict") < md.index("## Conclusions")
     assert "validation.png" in {p.name for p in out.iterdir()}
+    # the command the report prints for it runs as printed (from the folder diagnose ran in) and gives the same
+    (cmd,) = re.findall(r"^- day6: `(cncgw estimate [^`]+)`$", md, flags=re.M)
+    assert cmd == f"cncgw estimate --profile {profile} --model {written} {files[-1]}"
+    assert main([*shlex.split(cmd)[1:], "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)[0]["axes"]["z"]["rms_um"] == pytest.approx(reported["rms_um"], rel=1e-6)
 
 
 _PROFILE = """\

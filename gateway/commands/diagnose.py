@@ -144,7 +144,8 @@ def run(args: argparse.Namespace) -> int:
         # same: losing a diagnosis's minutes of work over its figures helps no one
         written = write_report(d, out, model_name=model_path.name.removesuffix(".toml").removesuffix(".model"),
                                title=f"{profile.name}, model {model_path.name}", extra=extra,
-                               validations=validations, hedges=hedges, figures=plotting.available())
+                               validations=validations, hedges=hedges, figures=plotting.available(),
+                               profile=args.profile)
         if not plotting.available():
             print(f"figures: skipped (matplotlib is not installed: {plotting.INSTALL_HINT})", file=sys.stderr)
     if args.json:

@@ -15,10 +15,11 @@ from gateway.model import save_model
 
 def write_report(d: Diagnosis, out_dir: str | Path, *, model_name: str = "model", title: str = "",
                  figures: bool = True, extra: dict[str, Any] | None = None, validations: Sequence[Validation] = (),
-                 hedges: Sequence[str] = ()) -> dict[str, Path]:
+                 hedges: Sequence[str] = (), profile: str = "") -> dict[str, Path]:
     """Write ``report.md``, ``report.json``, the PNGs and ``<model_name>.diagnosed.model.toml``.
 
     ``hedges``: caveats the reader must see with every figure (e.g. a window length that was assumed).
+    ``profile``: the profile's path as given, for the commands the report prints (run from the same folder).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -28,6 +29,7 @@ def write_report(d: Diagnosis, out_dir: str | Path, *, model_name: str = "model"
     doc = to_json(d, figures=names, model_file=model_file.name, validations=validations) | (extra or {})
     (out / "report.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
     (out / "report.md").write_text(to_markdown(d, figures=names, model_file=model_file.name, title=title,
-                                               validations=validations, hedges=hedges), encoding="utf-8")
+                                               validations=validations, hedges=hedges, profile=profile,
+                                               model_path=str(model_file)), encoding="utf-8")
     return {"report": out / "report.md", "json": out / "report.json", "model": model_file,
             **{n: out / n for n in names}}

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from gateway.diagnose.api import Diagnosis, Validation, recording_label
+from gateway.diagnose.data import split_part
 from gateway.diagnose.refit import identification_length_s
 from gateway.diagnose.search import Term, Trial
 from gateway.replay import AxisFigures
@@ -185,8 +186,14 @@ def _plain(x: Any) -> Any:
 
 
 def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = "", title: str = "",
-                validations: Sequence[Validation] = (), hedges: Sequence[str] = ()) -> str:
-    """The report as Markdown."""
+                validations: Sequence[Validation] = (), hedges: Sequence[str] = (), profile: str = "",
+                model_path: str = "") -> str:
+    """The report as Markdown.
+
+    ``profile``, ``model_path``: the paths the printed ``cncgw estimate`` commands use, as from the folder
+    ``cncgw diagnose`` ran in (the recordings' paths are as given there).
+    """
+    estimate_cmd = f"cncgw estimate --profile {profile or 'PROFILE'} --model {model_path or model_file or 'MODEL'}"
     L: list[str] = [f"# Diagnosis{': ' + title if title else ''}", ""]
     labels = [recording_label(s) for s in d.stack.sources]
     L += [f"Recordings: {', '.join(labels)}. Model axes: {', '.join(d.model.axes)}. "
@@ -232,11 +239,18 @@ def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = 
                          f"{_num(m.max_abs_error_um)} um | {_num(n.max_abs_error_um)} um | {_num(m.peak_um)} um | "
                          f"{_num(m.max_error_pct_of_peak, '.1f')} | {_num(n.max_error_pct_of_peak, '.1f')} |")
         L.append("")
+        L.append("The same with the written model, from the folder `cncgw diagnose` ran in:")
+        L.append("")
         for v in validations:
             opts = " ".join(f"--{k.replace('_', '-')} {val}" for k, val in v.settings.items()
                             if k in ("initial_state", "history") and val not in ("rest",))
-            L.append(f"- {v.label}: `cncgw estimate --model {model_file or 'MODEL'} {opts + ' ' if opts else ''}"
-                     f"{v.recording}`")
+            part = split_part(v.recording)
+            if part:  # estimate takes whole files: a run of a split file has no path of its own
+                L.append(f"- {v.label}: `{estimate_cmd} {opts + ' ' if opts else ''}FILE`, FILE holding only the "
+                         f"rows of {v.recording.removesuffix(f'[{part[0]}={part[1]}]')} where {part[0]} is "
+                         f"{part[1]}")
+            else:
+                L.append(f"- {v.label}: `{estimate_cmd} {opts + ' ' if opts else ''}{v.recording}`")
         L.append("")
 
     flags = bound_flags(d)
@@ -322,7 +336,7 @@ def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = 
     if figures:
         L += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     if model_file:
-        L += ["## Extended model", "", f"Written to `{model_file}`: `cncgw estimate --model {model_file}` runs it."]
+        L += ["## Extended model", "", f"Written to `{model_file}`: `{estimate_cmd} RECORDING` runs it."]
         if d.extended.inputs:
             L += ["", "Derived inputs:", ""] + [f"- `{i.name}`: {i.describe()}" + (f" ({i.note})" if i.note else "")
                                               for i in d.extended.inputs]
