@@ -476,3 +476,29 @@ def test_grid_scores_are_those_of_a_fit_on_the_other_blocks():
         for name in ("train", "held", "full", "without"):
             assert np.array_equal(getattr(by_rows, name), getattr(plain, name)), name
         assert all(np.array_equal(a, b) for a, b in zip(by_rows.gains_fold, plain.gains_fold, strict=True))
+
+
+@pytest.mark.plumbing
+def test_a_figure_whose_panels_have_no_labelled_line_gets_no_empty_legend():
+    # a real spindle's residual figure had no labelled line on its first panel: matplotlib warned on stderr
+    # ("No artists with labels found to put in legend") in the middle of the report's output
+    import warnings
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from gateway.diagnose.plots import _legend
+
+    fig, grid = plt.subplots(3, 1, squeeze=False)
+    grid[1, 0].plot([0, 1], [0, 1], label="written (held out)")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _legend(grid, fontsize=7)
+        assert [ax.get_legend() is not None for ax in grid[:, 0]] == [False, True, False]
+        bare, panels = plt.subplots(2, 1, squeeze=False)
+        _legend(panels, fontsize=7)
+        assert all(ax.get_legend() is None for ax in panels[:, 0])
+    plt.close(fig)
+    plt.close(bare)

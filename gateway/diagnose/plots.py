@@ -12,6 +12,14 @@ from gateway.diagnose.locate import spectrum
 from gateway.diagnose.report import written_terms
 
 
+def _legend(grid, **kw) -> None:
+    """The legend on the first panel that has labelled lines (none where no panel has: no empty legend)."""
+    for ax in grid[:, 0]:
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(**kw)
+            return
+
+
 def _hours(d: Diagnosis) -> np.ndarray:
     """Hours on one axis for all recordings end to end (each recording continues after the previous)."""
     st = d.stack
@@ -69,7 +77,7 @@ def write_figures(d: Diagnosis, out_dir: Path, *, validations: Sequence[Validati
             ax.axvline(h[s.index], color="C4", lw=1.0)
         _separators(ax, d, h)
         ax.set_ylabel(f"{a} (um)")
-    grid[0, 0].legend(fontsize=7, loc="best")
+    _legend(grid, fontsize=7, loc="best")
     grid[0, 0].set_title("measured vs the identified and the written model; shaded: residual outside its noise band; "
                          "violet: sensor steps" + tail, fontsize=9)
     grid[-1, 0].set_xlabel("time (h, recordings end to end: " + ", ".join(_labels(d)) + ")")
@@ -92,7 +100,7 @@ def write_figures(d: Diagnosis, out_dir: Path, *, validations: Sequence[Validati
         ax.axhspan(-band, band, color="0.85", lw=0)
         _separators(ax, d, h)
         ax.set_ylabel(f"{a} residual (um)")
-    grid[0, 0].legend(fontsize=7, loc="best")
+    _legend(grid, fontsize=7, loc="best")
     grid[0, 0].set_title("held-out residual (each block predicted from the others; grey: noise band)" + tail,
                          fontsize=9)
     grid[-1, 0].set_xlabel("time (h)")
@@ -120,7 +128,7 @@ def write_figures(d: Diagnosis, out_dir: Path, *, validations: Sequence[Validati
         ax.set_xlabel("period (h)")
         ax.set_title(f"{a} residual spectrum", fontsize=9)
     grid[0, 0].set_ylabel("power (um^2)")
-    grid[0, 0].legend(fontsize=7)
+    _legend(grid, fontsize=7)
     fig.tight_layout()
     fig.savefig(out_dir / "spectrum.png", dpi=100)
     plt.close(fig)
@@ -167,7 +175,7 @@ def _validation_figure(plt, validations: Sequence[Validation], out_dir: Path, ta
                 ax.set_ylabel(f"{a} (um)")
             if r == len(axes) - 1:
                 ax.set_xlabel("h")
-    grid[0, 0].legend(fontsize=6)
+    _legend(grid, fontsize=6)
     fig.suptitle("validation: recordings never fitted, as cncgw estimate gives them" + tail, fontsize=9)
     fig.tight_layout()
     fig.savefig(out_dir / "validation.png", dpi=100)
