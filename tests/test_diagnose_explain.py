@@ -10,6 +10,7 @@ Fast (seconds).
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -250,3 +251,28 @@ def test_the_model_that_explains_less_than_all_is_written_at_the_comparisons_lev
                  options=half, writable=lambda t: True)
     assert ex.written_unexplained, ex.verdict
     assert d.comparison.chosen == "explained"
+
+
+def test_the_residual_figure_shows_the_identified_models_residual_when_it_is_the_one_written(monkeypatch, tmp_path):
+    # where nothing passed and the identified model is written (a real spindle's diagnosis), the residual figure
+    # drew no line at all: the identified model is both "before" and "written", and both were skipped
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    from gateway.diagnose.plots import write_figures
+
+    d, _ = _diagnosed(monkeypatch, slow=False)
+    d.comparison.chosen = "identified"
+    lines: dict[str, list[list[str]]] = {}
+    savefig = Figure.savefig
+
+    def record(fig, path, *a, **kw):
+        lines[Path(path).name] = [[ln.get_label() for ln in ax.get_lines() if not ln.get_label().startswith("_")]
+                                  for ax in fig.axes]
+        return savefig(fig, path, *a, **kw)
+
+    monkeypatch.setattr(Figure, "savefig", record)
+    assert "residual.png" in write_figures(d, tmp_path)
+    assert lines["residual.png"] == [["identified (held out)"]]

@@ -90,9 +90,10 @@ def write_figures(d: Diagnosis, out_dir: Path, *, validations: Sequence[Validati
     for k, a in enumerate(axes):
         ax = grid[k, 0]
         i = d.model.axes.index(a)
-        for c, color in ((before, "C0"), (written, "C3")):
+        # the identified model's residual, and the written model's beside it when another model is written
+        for c, color in ((before, "C0"), *(((written, "C3"),) if written is not before else ())):
             p = c.prediction.get(a)
-            if p is None or (c is written and c is before):
+            if p is None:
                 continue
             ax.plot(h, st.y[i] - p, color=color, lw=0.8, label=f"{c.key} (held out)")
         ax.axhline(0, color="k", lw=0.5)
