@@ -79,3 +79,24 @@ def test_barely_excited_factor_is_named_as_such():
     poor = {p.factor: p for s in result.shrinkage for p in s.poorly_determined}
     assert "i2_sq" in poor
     assert poor["i2_sq"].why.startswith("too little excitation (i2_sq at >= 10 % of its highest for 1 h, in 1 of 6")
+
+
+def test_one_experiment_takes_no_prior_and_claims_no_held_out_error():
+    # leaving each experiment out needs another to predict it from: with one, its "held-out" error was its own
+    # variance (the prediction of nothing) and the report called it "predicted from the others"
+    (one,) = recordings(FIRST_ORDER_PLANT, [{"speed": 1000, "i1_sq": 100, "i2_sq": 40}], noise_um=0.2)
+    result = identify([one], factors=F, axes=("z",))
+    (z,) = result.shrinkage
+    assert not z.left_out
+    assert z.kappa == math.inf
+    assert z.held_out_rms == {}
+    text = "\n".join(result.report)
+    assert "gain prior: none (it is chosen by leaving each experiment out" in text
+    assert "with one experiment there are no others" in text
+    assert "predicted from the others" not in text
+    assert result.model.info["axis_z"]["held_out"] == "one experiment: nothing left out"
+    assert "held_out_rms_um" not in result.model.info["axis_z"]
+    # two experiments: each is predicted from the other, as before
+    two = identify(recordings(FIRST_ORDER_PLANT, PAPER_DESIGN[:2], noise_um=0.2), factors=F, axes=("z",))
+    assert two.shrinkage[0].left_out
+    assert "predicted from the others, worst: " in "\n".join(two.report)

@@ -354,9 +354,13 @@ def _shrink_selection(es: ExperimentSet, i: int, sel: AxisSelection) -> tuple[Ax
 
 def _shrink_report(shr: AxisShrinkage, units: Mapping[str, str]) -> list[str]:
     kappa = "none" if not math.isfinite(shr.kappa) else f"kappa {shr.kappa:g}"
-    lines = [f"    gain prior (|gain| ~ kappa x {shr.d_um:.3g} um / the factor's covered maximum): {kappa}, chosen by "
-             f"leaving each experiment out: held-out RMS {shr.loeo_rms:.3g} um (without the prior "
-             f"{shr.loeo_rms_without_prior:.3g} um)"]
+    if not shr.left_out:
+        lines = ["    gain prior: none (it is chosen by leaving each experiment out and predicting it from the others; "
+                 "with one experiment there are no others: nothing here was predicted from data it did not fit)"]
+    else:
+        lines = [f"    gain prior (|gain| ~ kappa x {shr.d_um:.3g} um / the factor's covered maximum): {kappa}, chosen "
+                 f"by leaving each experiment out: held-out RMS {shr.loeo_rms:.3g} um (without the prior "
+                 f"{shr.loeo_rms_without_prior:.3g} um)"]
     worst = sorted(shr.held_out_rms.items(), key=lambda kv: -kv[1])[:3]
     if worst:
         lines.append("    predicted from the others, worst: " + ", ".join(f"{n} {v:.3g} um" for n, v in worst))
@@ -366,8 +370,9 @@ def _shrink_report(shr: AxisShrinkage, units: Mapping[str, str]) -> list[str]:
 
 
 def _shrink_info(shr: AxisShrinkage) -> dict[str, object]:
-    return {"gain_prior_kappa": shr.kappa if math.isfinite(shr.kappa) else "none",
-            "held_out_rms_um": shr.loeo_rms, "held_out_rms_um_without_prior": shr.loeo_rms_without_prior,
+    held = ({"held_out_rms_um": shr.loeo_rms, "held_out_rms_um_without_prior": shr.loeo_rms_without_prior}
+            if shr.left_out else {"held_out": "one experiment: nothing left out"})
+    return {"gain_prior_kappa": shr.kappa if math.isfinite(shr.kappa) else "none", **held,
             "poorly_determined": [f"{p.factor}: {p.why}" for p in shr.poorly_determined]}
 
 

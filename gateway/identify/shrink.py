@@ -75,6 +75,12 @@ class AxisShrinkage:
     held_out_rms: dict[str, float]  # per experiment at the chosen kappa (um)
     paths: list[PathDetermination] = field(default_factory=list)
     d_um: float = 0.0
+    experiments: int = 0  # with measured windows on this axis: below 2 there is nothing to leave out
+
+    @property
+    def left_out(self) -> bool:
+        """Whether the prior was chosen by leaving experiments out (two or more): else it is none."""
+        return self.experiments >= 2
 
     @property
     def loeo_rms(self) -> float:
@@ -122,7 +128,7 @@ def shrink_axis(problem: AxisProblem, fit: AxisFit, *, n_eff: float, kappas: Seq
     u_max = np.abs(np.nan_to_num(es.du)).reshape(len(factors), -1).max(axis=1)
     if not raw or d_um <= 0:
         return AxisShrinkage(axis=fit.axis, kappa=math.inf, fit=fit, loeo_sse=dict.fromkeys(kappas, 0.0),
-                             held_out_rms={}, d_um=d_um)
+                             held_out_rms={}, d_um=d_um, experiments=len(blocks))
     owner_arr = np.array(owner)
     extra = problem.extra
     X = problem.demean(np.column_stack([*raw, extra]) if extra.shape[1] else np.column_stack(raw))
@@ -158,8 +164,9 @@ def shrink_axis(problem: AxisProblem, fit: AxisFit, *, n_eff: float, kappas: Seq
             per.append(e)
         sse[k] = total
         held[k] = per
-    # the strongest prior is only taken when it predicts left-out experiments better: ties go to less prior
-    kappa = min(reversed(kappas), key=lambda k: sse[k])
+    # the strongest prior is only taken when it predicts left-out experiments better: ties go to less prior.
+    # One experiment leaves nothing to predict it from (its "held-out" error would be its own variance): none
+    kappa = min(reversed(kappas), key=lambda k: sse[k]) if len(blocks) >= 2 else math.inf
     R = sigma2 * PP / kappa**2 if math.isfinite(kappa) else np.zeros_like(PP)
     coef = solve(G + R, bvec) / scale
     unshrunk = solve(G, bvec) / scale
@@ -179,7 +186,8 @@ def shrink_axis(problem: AxisProblem, fit: AxisFit, *, n_eff: float, kappas: Seq
                      offsets=offsets, rss=float(r @ r), extra_gains=extra_gains if extra.shape[1] else fit.extra_gains,
                      n=fit.n, nfev=fit.nfev, converged=fit.converged, residuals=problem._per_experiment(r),
                      sd=fit.sd, gain_cov=fit.gain_cov, bic=fit.bic)
-    held_rms = {es.names[e]: math.sqrt(v / max(b - a, 1)) for (e, a, b), v in zip(blocks, held[kappa], strict=True)}
+    held_rms = ({es.names[e]: math.sqrt(v / max(b - a, 1)) for (e, a, b), v in zip(blocks, held[kappa], strict=True)}
+                if len(blocks) >= 2 else {})
     cov = np.linalg.pinv(G, rcond=1e-12) / np.outer(scale, scale) * sigma2
     determinations = []
     for j in paths:
@@ -213,7 +221,7 @@ def shrink_axis(problem: AxisProblem, fit: AxisFit, *, n_eff: float, kappas: Seq
             factor=factors[j], gain=gain_j, unshrunk=float(unshrunk[:p_paths][cols].sum()), sd=sd,
             prior_sd=prior, poorly=poorly, why=why))
     return AxisShrinkage(axis=fit.axis, kappa=kappa, fit=shrunk, loeo_sse=sse, held_out_rms=held_rms,
-                         paths=determinations, d_um=d_um)
+                         paths=determinations, d_um=d_um, experiments=len(blocks))
 
 
 #: two factors co-vary when their deviations correlate at least this much over the recordings
