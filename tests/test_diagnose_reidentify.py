@@ -264,3 +264,23 @@ def test_a_knocked_sensor_is_neither_a_model_error_nor_a_resting_drift():
     assert sorted(steps) == [3, 25]
     assert d.adequacy.fit, d.adequacy.lines()
     assert d.adequacy.drift["z"].drifting == 0
+
+
+def test_files_of_the_same_name_in_other_folders_are_told_apart_in_the_report(tmp_path, plant_data, capsys):
+    # day folders often hold files of one name: the report named both "day" and listed each note twice
+    exps, days, fresh, base = plant_data
+    profile = tmp_path / "synthetic.toml"
+    profile.write_text(_PROFILE)
+    files = [tmp_path / rec.source for rec in exps] + [tmp_path / f"d{k}" / "day.csv" for k in range(1, 6)]
+    for rec, path in zip([*exps, *days, fresh], files, strict=True):
+        path.parent.mkdir(exist_ok=True)
+        write_recording(path, time_s=rec.time_s, columns={**rec.factors, "z_um": rec.displacement["z"]})
+    model = save_model(base, tmp_path / "base.model.toml")
+    assert main(["diagnose", "--profile", str(profile), "--model", str(model), *map(str, files[:-1]), "-o",
+                 str(tmp_path / "report"), "--validate", str(files[-1])]) == 0
+    capsys.readouterr()
+    doc = json.loads((tmp_path / "report" / "report.json").read_text())
+    assert doc["labels"][-4:] == ["d1/day", "d2/day", "d3/day", "d4/day"]
+    assert doc["validation"][0]["label"] == "d5/day"
+    md = (tmp_path / "report" / "report.md").read_text()
+    assert "d1/day, d2/day, d3/day, d4/day" in md

@@ -23,7 +23,7 @@ from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
-from gateway.diagnose.data import Stack, recording_label
+from gateway.diagnose.data import Stack
 from gateway.model.model import ThermalModel
 from gateway.replay import AxisFigures
 
@@ -146,7 +146,7 @@ def assess(stack: Stack, model: ThermalModel, sigma_um: dict[str, float],
                 lead = np.zeros_like(ok)
                 lead[int(np.flatnonzero(ok)[0])] = True
             offset = float(np.mean(y[lead] - p[lead]))
-            parts.append((recording_label(stack.sources[r]), (y - offset - p)[ok], (y - offset)[ok], p[ok]))
+            parts.append((stack.labels[r], (y - offset - p)[ok], (y - offset)[ok], p[ok]))
         if not parts:
             continue
         err = np.concatenate([e for _, e, _, _ in parts])
@@ -182,7 +182,7 @@ def assess(stack: Stack, model: ThermalModel, sigma_um: dict[str, float],
                                worst=worst[0] if worst else "", reasons=tuple(reasons))
     drift = {a: resting_drift(stack, i, sigma_um.get(a, 0.0), y=y_all[i]) for i, a in enumerate(stack.axes)
              if np.isfinite(stack.y[i]).any()}
-    return Adequacy(unseen=tuple(recording_label(stack.sources[r]) for r in unseen), axes=axes, drift=drift,
+    return Adequacy(unseen=tuple(stack.labels[r] for r in unseen), axes=axes, drift=drift,
                     training=training)
 
 
@@ -223,8 +223,8 @@ def resting_drift(stack: Stack, axis: int, sigma_um: float, *, y: np.ndarray | N
                     moved = slope * float(t_h[-1] - t_h[0])
                     if abs(moved) > band:
                         drifting += 1
-                        if recording_label(stack.sources[r]) not in where:
-                            where.append(recording_label(stack.sources[r]))
+                        if stack.labels[r] not in where:
+                            where.append(stack.labels[r])
                         if abs(moved) > abs(largest):
                             largest, rate = moved, slope
             k = end

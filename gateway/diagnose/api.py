@@ -22,7 +22,7 @@ from gateway import __version__
 from gateway.diagnose.adequacy import Adequacy, assess
 from gateway.diagnose.compare import Comparison, compare
 from gateway.diagnose.confusable import Confusion, confusions
-from gateway.diagnose.data import Stack, build_stack, recording_label, split_part
+from gateway.diagnose.data import Stack, build_stack, recording_labels, split_part
 from gateway.diagnose.explain import Explanation, explain, held_corrections
 from gateway.diagnose.extend import extend_model
 from gateway.diagnose.hypotheses import FactorInfo, Hypothesis, catalogue
@@ -379,7 +379,7 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
         if f.noise.quantum_um > 0:
             out.append(f"axis {a}: the displacement is quantised in steps of {f.noise.quantum_um:.3g} um "
                        f"(noise floor {f.noise.quantum_um / math.sqrt(12):.3g} um RMS)")
-    seen = [recording_label(st.sources[r]) for r, s in enumerate(st.identified(d.model)) if s]
+    seen = [st.labels[r] for r, s in enumerate(st.identified(d.model)) if s]
     if seen:
         out.append(f"{', '.join(seen)} identified the model: there its error is a fit residual, not a test; they "
                    "still inform the re-identification and the hypotheses' fits")
@@ -493,6 +493,10 @@ def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence
     recording starts warm (:func:`starts_warm`), fitted to its first hour; else at rest.
     """
     pool = [*earlier, *recordings]
+    # named as the report names the diagnosed recordings: files of the same name by their folders too
+    sources = list(dict.fromkeys([*d.stack.sources, *(r.source for r in pool),
+                                  *([history.source] if history is not None else [])]))
+    label = dict(zip(sources, recording_labels(sources), strict=True))
     out = []
     for k, rec in enumerate(recordings):
         chain = _preceding(rec, pool)
@@ -503,7 +507,7 @@ def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence
             hist = part if hist is None else continued(hist, part)
         initial_state = "rest"
         if hist is not None:
-            start = f"carried from {', '.join(recording_label(p.source) for p in chain)} (ran just before it)"
+            start = f"carried from {', '.join(label[p.source] for p in chain)} (ran just before it)"
         else:
             warm = starts_warm(d.extended, rec, gap_policy=gap_policy)
             if warm:
@@ -514,7 +518,7 @@ def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence
         kw = {"gap_policy": gap_policy, "history": hist, "initial_state": initial_state}
         before = estimate(d.model, rec, **kw)
         after = estimate(d.extended, rec, **kw)
-        out.append(Validation(recording=rec.source, label=recording_label(rec.source), start=start,
+        out.append(Validation(recording=rec.source, label=label[rec.source], start=start,
                               settings=dict(after.settings), before=before, after=after))
     return out
 

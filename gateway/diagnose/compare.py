@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gateway.diagnose.data import Stack, recording_label
+from gateway.diagnose.data import Stack
 from gateway.diagnose.refit import Reidentified, held_out_reidentified
 from gateway.diagnose.search import Options, Trial, setting_columns
 from gateway.diagnose.select import BURN_IN, held_out, one_sided_p
@@ -241,7 +241,7 @@ def _scheme(stack: Stack, model: ThermalModel, block: np.ndarray, options: Optio
                 if part.size:
                     score[part] = nxt
                     nxt += 1
-        names = ", ".join(recording_label(stack.sources[r]) for r in judged[:6]) + (", ..." if len(judged) > 6 else "")
+        names = ", ".join(stack.labels[r] for r in judged[:6]) + (", ..." if len(judged) > 6 else "")
         return folds, score, f"each of {len(judged)} recordings left out whole ({names})"
     raw = np.where(np.isin(rec, judged) & (block >= 0), block, -1)
     score = np.full(stack.n, -1)

@@ -89,6 +89,14 @@ class Stack:
     def n(self) -> int:
         return len(self.time_s)
 
+    @property
+    def labels(self) -> list[str]:
+        """Per recording, its short name in reports (:func:`recording_labels`: distinct where files share one)."""
+        key = "labels"
+        if key not in self._cache:
+            self._cache[key] = recording_labels(self.sources)
+        return self._cache[key]  # type: ignore[return-value]
+
     def identified(self, model: ThermalModel) -> list[bool]:
         """Per recording, whether ``model`` was identified on it.
 
@@ -242,15 +250,19 @@ def build_stack(model: ThermalModel, recordings: Sequence[Recording], *, gap_pol
     extras: dict[str, list[np.ndarray]] = {k: [] for k in extra_names}
     start = 0
     sds, sampled = [], []
-    for rec in recordings:
+    # notes name each recording as it is known (its file's stem); files of the same name by their folders too
+    stems = [r.name for r in recordings]
+    called = [name if stems.count(name) == 1 else label
+              for name, label in zip(stems, recording_labels([r.source for r in recordings]), strict=True)]
+    for rec, call in zip(recordings, called, strict=True):
         p = prepare(rec, factors=model.factors, axes=model.axes, initial="first", gap_policy=gap_policy,
                     inputs=model.inputs, probe_points=True)
-        notes += [f"{p.name}: {n}" for n in p.notes]
+        notes += [f"{call}: {n}" for n in p.notes]
         notes += _measured_note(p, rec, model.axes)
         sds.append(p.y_sd if p.y_sd is not None else np.full(p.y.shape, np.nan))
         sampled.append(p.sparse)
         if model.coverage is not None:  # where the model extrapolates, a residual is not missing physics alone
-            notes += [f"{p.name}: {n}" for n in
+            notes += [f"{call}: {n}" for n in
                       check_coverage(model.coverage, p.du, model.factors, model.units).notes(dt)]
         names.append(p.name)
         srcs.append(rec.source)
@@ -318,6 +330,49 @@ def split_part(source: str) -> tuple[str, str] | None:
     """(column, value) of a run of a file split by a column (``file.csv[day=7]``, see ``--split-by``), else None."""
     m = re.search(r"\[([^=\]]+)=([^\]]+)\]$", source)
     return (m.group(1), m.group(2)) if m else None
+
+
+def recording_labels(sources: Sequence[str]) -> list[str]:
+    """:func:`recording_label` of each source, made distinct where two share one.
+
+    Day folders often hold files of the same name (``day1/log.csv``, ``day2/log.csv``): those are named by as
+    many of their folders as tell them apart (``day1/log``, ``day2/log``), the runs of two split files by their
+    file too (``a day 7``, ``b day 7``).
+    """
+    labels = [recording_label(s) for s in sources]
+    clash = {x for x in labels if labels.count(x) > 1}
+    if not clash:
+        return labels
+    out = []
+    for s, label in zip(sources, labels, strict=True):
+        if label not in clash:
+            out.append(label)
+            continue
+        group = sorted({t for t, m in zip(sources, labels, strict=True) if m == label})
+        out.append(_distinct(s, group) if len(group) > 1 else label)
+    return out
+
+
+def _distinct(source: str, group: Sequence[str]) -> str:
+    """``source``'s label, with as many folders as tell it from the others of ``group`` (one label, all).
+
+    A run of a split file is named by its file first; the source itself where nothing tells them apart.
+    """
+
+    def parts(src: str) -> tuple[Path, tuple[str, str] | None]:
+        part = split_part(src)
+        file = src.removesuffix(f"[{part[0]}={part[1]}]") if part else src
+        return Path(file), part
+
+    def named(src: str, depth: int) -> str:
+        file, part = parts(src)
+        stem = "/".join([*file.parent.parts[len(file.parent.parts) - depth:], file.stem]) if depth else file.stem
+        return f"{stem} {part[0]} {part[1]}" if part else stem
+
+    for depth in range(0 if split_part(source) else 1, 1 + max(len(parts(t)[0].parts) for t in group)):
+        if len({named(t, depth) for t in group}) == len(group):
+            return named(source, depth)
+    return source
 
 
 def recording_label(source: str) -> str:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gateway.diagnose.api import Diagnosis, Validation, recording_label
+from gateway.diagnose.api import Diagnosis, Validation
 from gateway.diagnose.locate import spectrum
 from gateway.diagnose.report import written_terms
 
@@ -185,7 +185,7 @@ def _validation_figure(plt, validations: Sequence[Validation], out_dir: Path, ta
 
 
 def _labels(d: Diagnosis) -> list[str]:
-    return [recording_label(s) for s in d.stack.sources]
+    return list(d.stack.labels)
 
 
 def _zero_at_start(st, pred: np.ndarray, meas: np.ndarray) -> np.ndarray:

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from gateway.diagnose.api import Diagnosis, Validation, recording_label
+from gateway.diagnose.api import Diagnosis, Validation
 from gateway.diagnose.data import split_part
 from gateway.diagnose.refit import identification_length_s
 from gateway.diagnose.search import Term, Trial
@@ -76,7 +76,7 @@ def to_json(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = "",
     ad = d.adequacy
     ex = d.explanation
     return _plain({
-        "recordings": list(d.stack.sources), "labels": [recording_label(s) for s in d.stack.sources],
+        "recordings": list(d.stack.sources), "labels": d.stack.labels,
         "axes": list(d.model.axes), "wall_s": d.wall_s,
         "options": vars(d.options), "conclusions": d.conclusions, "notes": d.notes,
         "adequacy": {"judged": ad.judged, "fit": ad.fit, "unseen": list(ad.unseen),
@@ -195,7 +195,7 @@ def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = 
     """
     estimate_cmd = f"cncgw estimate --profile {profile or 'PROFILE'} --model {model_path or model_file or 'MODEL'}"
     L: list[str] = [f"# Diagnosis{': ' + title if title else ''}", ""]
-    labels = [recording_label(s) for s in d.stack.sources]
+    labels = d.stack.labels
     L += [f"Recordings: {', '.join(labels)}. Model axes: {', '.join(d.model.axes)}. "
           f"{len(d.hypotheses)} hypotheses, {len(d.result.trials)} trials in {d.wall_s:.1f} s.", ""]
     L += [f"> {h}" for h in hedges] + ([""] if hedges else [])
