@@ -80,6 +80,24 @@ class Gap:
         return f"{self.rows} missing window{'s' if self.rows != 1 else ''} after t={self.after_s:g} s"
 
 
+
+def split_part(source: str) -> tuple[str, str] | None:
+    """(column, value) of a run of a file split by a column (``file.csv[day=7]``, see ``--split-by``), else None."""
+    m = re.search(r"\[([^=\]]+)=([^\]]+)\]$", source)
+    return (m.group(1), m.group(2)) if m else None
+
+
+def recording_name(source: str) -> str:
+    """A recording's name from its source: its file's stem, with the part for a run of a split file.
+
+    ``file.csv[day=7]`` (see ``--split-by``) is ``file[day=7]``.
+    """
+    if not source:
+        return "recording"
+    m = re.match(r"^(.*?)(\[[^\]]*\])$", source)
+    return Path(m.group(1)).stem + m.group(2) if m else Path(source).stem
+
+
 @dataclass(frozen=True, kw_only=True)
 class Recording:
     """A recording on a regular grid. Arrays are read-only; missing windows are NaN rows."""
@@ -108,10 +126,7 @@ class Recording:
     @property
     def name(self) -> str:
         """The file's stem; for a part of a file (``file.csv[day=7]``, see ``--split-by``) with the part."""
-        if not self.source:
-            return "recording"
-        m = re.match(r"^(.*?)(\[[^\]]*\])$", self.source)
-        return Path(m.group(1)).stem + m.group(2) if m else Path(self.source).stem
+        return recording_name(self.source)
 
     def fingerprint(self, factors: Sequence[str]) -> str:
         """A short hash of the values of ``factors`` and of the displacement columns (time stamps left out).

@@ -247,7 +247,7 @@ def test_real_spindle_recording_runs_and_says_what_it_cannot_conclude(tmp_path, 
 
 @pytest.mark.plumbing
 def test_real_lathe_recording_of_concatenated_days_runs(tmp_path, shared_data, capsys):
-    from gateway.commands.diagnose import split_by
+    from gateway.commands._common import split_by
     from gateway.identify import identify
     from gateway.recording import read_for_profile
 

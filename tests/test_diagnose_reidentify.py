@@ -284,3 +284,48 @@ def test_files_of_the_same_name_in_other_folders_are_told_apart_in_the_report(tm
     assert doc["validation"][0]["label"] == "d5/day"
     md = (tmp_path / "report" / "report.md").read_text()
     assert "d1/day, d2/day, d3/day, d4/day" in md
+
+
+def test_a_file_of_several_runs_is_split_alike_by_identify_diagnose_and_estimate(tmp_path, plant_data, capsys):
+    # a plant's export holds runs one after the other with a run number column (the ACE lathe's 18 days in one
+    # file): identify, diagnose and estimate all take --split-by, each run starting in its own equilibrium
+    exps, days, fresh, _ = plant_data
+    profile = tmp_path / "synthetic.toml"
+    profile.write_text(_PROFILE)
+
+    def joined(path, recs):
+        cols = {k: np.concatenate([r.factors[k] for r in recs]) for k in recs[0].factors}
+        cols["z_um"] = np.concatenate([r.displacement["z"] for r in recs])
+        cols["run"] = np.concatenate([np.full(len(r), k + 1.0) for k, r in enumerate(recs)])
+        write_recording(path, time_s=60.0 * np.arange(1, len(cols["run"]) + 1), columns=cols)
+        return str(path)
+
+    exp_file, day_file = joined(tmp_path / "exps.csv", exps), joined(tmp_path / "days.csv", [*days, fresh])
+    model = tmp_path / "m.toml"
+    assert main(["identify", "--profile", str(profile), exp_file, "--split-by", "run", "-o", str(model)]) == 0
+    assert "from 3 experiment(s)" in capsys.readouterr().out
+    assert load_model(model).info["experiments"] == ["exps[run=1]", "exps[run=2]", "exps[run=3]"]
+    out = tmp_path / "report"
+    assert main(["diagnose", "--profile", str(profile), "--model", str(model), exp_file, day_file,
+                 "--split-by", "run", "-o", str(out), "--validate", day_file]) == 2  # the same file twice
+    assert (f"--validate {day_file}[run=1]: the same data as {day_file}[run=1], which is diagnosed: validation "
+            "takes recordings never used for fitting or selection") in capsys.readouterr().err
+    train = joined(tmp_path / "train.csv", days)
+    val = joined(tmp_path / "val.csv", [_day(5, seed=50), fresh])  # run 2 follows run 1 in time: not carried
+    assert main(["diagnose", "--profile", str(profile), "--model", str(model), exp_file, train, "--split-by",
+                 "run", "-o", str(out), "--validate", val]) == 0
+    capsys.readouterr()
+    doc = json.loads((out / "report.json").read_text())
+    (v,) = [v for v in doc["validation"] if v["recording"].endswith("val.csv[run=2]")]
+    assert not v["start"].startswith("carried")
+    md = (out / "report.md").read_text()
+    (cmd,) = re.findall(rf"^- {re.escape(v['label'])}: `(cncgw estimate [^`]+)` \(its run 2\)$", md, flags=re.M)
+    assert cmd.endswith(f"--split-by run {val}")
+    assert main([*shlex.split(cmd)[1:], "--json"]) == 0
+    runs = {e["recording"]: e for e in json.loads(capsys.readouterr().out)}
+    assert set(runs) == {f"{val}[run=1]", f"{val}[run=2]"}
+    assert runs[f"{val}[run=2]"]["axes"]["z"]["rms_um"] == pytest.approx(v["after"]["z"]["rms_um"], rel=1e-6)
+    # each run's prediction a file of its own
+    preds = tmp_path / "preds"
+    assert main([*shlex.split(cmd)[1:], "-o", str(preds)]) == 0
+    assert sorted(p.name for p in preds.iterdir()) == ["val[run=1].pred.csv", "val[run=2].pred.csv"]

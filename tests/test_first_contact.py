@@ -67,13 +67,23 @@ def _two_days(rec, path):
     return path
 
 
+def _other_run(rec, path):
+    """``rec`` with its displacement 0.5 um higher: another run (diagnose refuses to validate on one it fits)."""
+    lines = [ln for ln in rec.read_text().splitlines() if not ln.startswith("#")]
+    um = [k for k, name in enumerate(lines[0].split(",")) if name.endswith("_um")]
+    rows = [[f"{float(v) + 0.5:g}" if k in um and v else v for k, v in enumerate(ln.split(","))] for ln in lines[1:]]
+    path.write_text("\n".join([lines[0], *(",".join(r) for r in rows)]) + "\n")
+    return path
+
+
 def test_split_by_splits_the_files_that_have_the_column_and_keeps_the_others_whole(random_spindle, tmp_path,
                                                                                    capsys):
     days = _two_days(random_spindle, tmp_path / "days.csv")
+    other = _other_run(random_spindle, tmp_path / "other.csv")
     # the README's workflow: the experiments (here one recording without a day column), a file of several
     # days, and a validation run without one: it had failed on the first file without the column (exit 1)
     assert main(["diagnose", "--profile", "sim-vmc", str(random_spindle), str(days), "--split-by", "day",
-                 "--validate", str(random_spindle), "--no-reidentify", "--json"]) == 0
+                 "--validate", str(other), "--no-reidentify", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["recordings"] == [str(random_spindle), f"{days}[day=1]", f"{days}[day=2]"]
     assert len(doc["validation"]) == 1

@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import itertools
 import re
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
+
+import numpy as np
 
 from gateway.errors import GatewayError, ModelError, UsageError
 from gateway.model import ThermalModel, load_model
+from gateway.model.inputs import hold_missing
 from gateway.profile import Profile
 from gateway.recording import Recording, read_for_profile
 
@@ -47,6 +52,38 @@ def add_recording_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gap-policy", choices=("hold", "reference"), default="hold",
                    help="factors during missing windows: hold the last window's values (default) or assume "
                         "the machine idle at the reference state; gaps are reported either way")
+
+
+def split_by(rec: Recording, column: str) -> list[Recording]:
+    """The runs of ``rec``: a new one wherever ``column`` changes value (missing cells continue the run)."""
+    values = rec.extras.get(column)
+    if values is None:
+        have = ", ".join(sorted(rec.extras)) or "none"
+        raise UsageError(f'{rec.source}: --split-by: no numeric column "{column}" (numeric extra columns: {have})')
+    held = hold_missing(np.asarray(values, float))
+    cuts = [0, *(np.flatnonzero(np.diff(held) != 0) + 1).tolist(), len(rec)]
+    return [replace(rec.slice(a, b), source=f"{rec.source}[{column}={held[a]:g}]")
+            for a, b in itertools.pairwise(cuts) if b > a]
+
+
+def split_those_with(recs: list[Recording], column: str, others: Sequence[Recording] = ()) -> list[Recording]:
+    """``recs`` with every recording that has ``column`` split into its runs; one without it stays whole.
+
+    The experiments and a validation day given beside a file of several days have no day column: only the
+    files that hold several runs are split. ``column`` in none of ``recs`` and ``others`` is a usage error.
+    """
+    if not any(column in r.extras for r in [*recs, *others]):
+        have = "; ".join(f"{r.source}: {', '.join(sorted(r.extras)) or 'none'}" for r in [*recs, *others])
+        raise UsageError(f'--split-by: no recording has a numeric column "{column}" (numeric extra columns: {have})')
+    return [part for r in recs for part in (split_by(r, column) if column in r.extras else [r])]
+
+
+def add_split_option(p: argparse.ArgumentParser, *, also: str = "") -> None:
+    """``--split-by COLUMN``: a file holding several runs one after the other (a day number column)."""
+    p.add_argument("--split-by", metavar="COLUMN",
+                   help="a recording holds several runs one after the other (e.g. a day number column): start a "
+                        "new recording wherever COLUMN changes value; each starts in its own equilibrium "
+                        f"(recordings without COLUMN{also} stay whole)")
 
 
 def read_recordings(paths: Sequence[str], profile: Profile, *, period_s: float | None,

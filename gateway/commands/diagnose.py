@@ -3,52 +3,23 @@
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import sys
-from collections.abc import Sequence
-from dataclasses import replace
 from pathlib import Path
-
-import numpy as np
 
 from gateway import plotting
 from gateway.commands._common import (
     add_recording_options,
+    add_split_option,
     check_output,
     load_model_for,
     positive_float,
     positive_int,
     read_recordings,
+    split_those_with,
 )
 from gateway.errors import GatewayError, UsageError
-from gateway.model.inputs import hold_missing
 from gateway.profile import load_profile
-from gateway.recording import Recording
-
-
-def split_by(rec: Recording, column: str) -> list[Recording]:
-    """The runs of ``rec``: a new one wherever ``column`` changes value (missing cells continue the run)."""
-    values = rec.extras.get(column)
-    if values is None:
-        have = ", ".join(sorted(rec.extras)) or "none"
-        raise UsageError(f'{rec.source}: --split-by: no numeric column "{column}" (numeric extra columns: {have})')
-    held = hold_missing(np.asarray(values, float))
-    cuts = [0, *(np.flatnonzero(np.diff(held) != 0) + 1).tolist(), len(rec)]
-    return [replace(rec.slice(a, b), source=f"{rec.source}[{column}={held[a]:g}]")
-            for a, b in itertools.pairwise(cuts) if b > a]
-
-
-def split_those_with(recs: list[Recording], column: str, others: Sequence[Recording] = ()) -> list[Recording]:
-    """``recs`` with every recording that has ``column`` split into its runs; one without it stays whole.
-
-    The experiments and a validation day given beside a file of several days have no day column: only the
-    files that hold several runs are split. ``column`` in none of ``recs`` and ``others`` is a usage error.
-    """
-    if not any(column in r.extras for r in [*recs, *others]):
-        have = "; ".join(f"{r.source}: {', '.join(sorted(r.extras)) or 'none'}" for r in [*recs, *others])
-        raise UsageError(f'--split-by: no recording has a numeric column "{column}" (numeric extra columns: {have})')
-    return [part for r in recs for part in (split_by(r, column) if column in r.extras else [r])]
 
 
 def _share(text: str) -> float:
@@ -86,10 +57,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--min-gain", type=_share, default=0.1, metavar="SHARE",
                    help="relevance: share of an axis's held-out squared error it must remove (default 0.1)")
     p.add_argument("--blocks", type=positive_int, default=16, metavar="K", help="held-out blocks of time (default 16)")
-    p.add_argument("--split-by", metavar="COLUMN",
-                   help="a recording holds several runs one after the other (e.g. a day number column): start a "
-                        "new recording wherever COLUMN changes value; each starts in its own equilibrium "
-                        "(recordings without COLUMN, e.g. the experiments, stay whole)")
+    add_split_option(p, also=", e.g. the experiments,")
     p.add_argument("--history", metavar="RECORDING",
                    help="a recording that ran just before the first --validate recording: it starts in the state "
                         "this one left (recordings given that end one window before another starts are chained "
@@ -127,6 +95,13 @@ def run(args: argparse.Namespace) -> int:
         if args.validate else []
     if args.split_by:
         recs, vrecs = split_those_with(recs, args.split_by, vrecs), split_those_with(vrecs, args.split_by, recs)
+    # a validation recording that is also diagnosed would be scored on data the model was fitted on
+    fitted = {r.fingerprint(model.factors): r.source for r in recs}
+    for v in vrecs:
+        same = fitted.get(v.fingerprint(model.factors))
+        if same is not None:
+            raise UsageError(f"--validate {v.source}: the same data as {same}, which is diagnosed: validation takes "
+                             "recordings never used for fitting or selection (give it only after --validate)")
     history = None
     if args.history:
         history = read_recordings([args.history], profile, period_s=args.period_s, require_displacement=False)[0]
@@ -145,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
         written = write_report(d, out, model_name=model_path.name.removesuffix(".toml").removesuffix(".model"),
                                title=f"{profile.name}, model {model_path.name}", extra=extra,
                                validations=validations, hedges=hedges, figures=plotting.available(),
-                               profile=args.profile)
+                               profile=args.profile, recording_options=_recording_options(args))
         if not plotting.available():
             print(f"figures: skipped (matplotlib is not installed: {plotting.INSTALL_HINT})", file=sys.stderr)
     if args.json:
@@ -172,3 +147,9 @@ def run(args: argparse.Namespace) -> int:
     for path in written.values():
         print(f"wrote {path}")
     return 0
+
+
+def _recording_options(args: argparse.Namespace) -> str:
+    """The options the recordings were read with, as ``cncgw estimate`` must be given them to read the same."""
+    opts = [f"--period-s {args.period_s:g}"] if args.period_s else []
+    return " ".join(opts + ([f"--gap-policy {args.gap_policy}"] if args.gap_policy != "hold" else []))

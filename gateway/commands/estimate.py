@@ -11,15 +11,17 @@ from typing import Any
 from gateway import plotting
 from gateway.commands._common import (
     add_recording_options,
+    add_split_option,
     check_output,
     load_model_for,
     read_recordings,
     refuse_writing_over_inputs,
+    split_those_with,
 )
 from gateway.errors import GatewayError, UsageError
 from gateway.prepare import INITIAL_CHOICES
 from gateway.profile import load_profile
-from gateway.recording import continued
+from gateway.recording import continued, recording_name, split_part
 from gateway.replay import ALIGN_CHOICES, INITIAL_STATES, estimate, metrics_json, plot_estimates
 
 
@@ -55,6 +57,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "the probes taken during each recording, with its 95 %% band; -o writes it with "
                         "<axis>_sd_um and <axis>_model_um columns")
     add_recording_options(p)
+    add_split_option(p)
     p.set_defaults(func=run)
 
 
@@ -73,6 +76,8 @@ def run(args: argparse.Namespace) -> int:
               f'"{profile.name}": these are the figures of another machine\'s model (`cncgw run` refuses it)',
               file=sys.stderr)
     recs = read_recordings(args.recordings, profile, period_s=args.period_s, require_displacement=False)
+    if args.split_by:
+        recs = split_those_with(recs, args.split_by)
     history = None
     if args.history:
         history = read_recordings([args.history], profile, period_s=args.period_s, require_displacement=False)[0]
@@ -82,8 +87,7 @@ def run(args: argparse.Namespace) -> int:
     for r in recs:
         ests.append(estimate(model, r, initial=args.initial, gap_policy=args.gap_policy, align=args.align,
                              history=history, initial_state=args.initial_state))
-        if history is not None:
-            history = continued(history, r)
+        history = _carried(history, r)
     if args.output:
         out = Path(args.output)
         meta = {"model": str(model_path), "profile": str(profile.path)}
@@ -94,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
                 raise GatewayError(f"{out}: expected a directory for {len(ests)} recordings")
             out.mkdir(parents=True, exist_ok=True)
             for e in ests:
-                (out / f"{Path(e.recording).stem}.pred.csv").write_text(e.to_csv({**meta, "recording": e.recording}))
+                (out / f"{recording_name(e.recording)}.pred.csv").write_text(
+                    e.to_csv({**meta, "recording": e.recording}))
     if args.json:
         print(metrics_json(ests))
     else:
@@ -111,6 +116,16 @@ def run(args: argparse.Namespace) -> int:
         if not args.json:
             print(f"wrote {args.plot}")
     return 0
+
+
+def _carried(history: Any, rec: Any) -> Any:
+    """The history the next recording starts from: ``history`` run on through ``rec``.
+
+    None after a run of a ``--split-by`` file: each run starts in its own equilibrium.
+    """
+    if history is None or split_part(rec.source):
+        return None
+    return continued(history, rec)
 
 
 def _run_probed(args: argparse.Namespace, profile: Any, model: Any, model_path: Path, recs: list[Any],
@@ -131,8 +146,7 @@ def _run_probed(args: argparse.Namespace, profile: Any, model: Any, model_path: 
                                   history=history)
         runs.append(pr)
         figures.append(pr.figures(base.measured))
-        if history is not None:
-            history = continued(history, r)
+        history = _carried(history, r)
     if probes and all(pr.outside == len(probes) for pr in runs):
         # the figures below are then the model's alone: most likely the probes' clock is not the recordings'
         spans = "; ".join(f"{r.source}: {r.time_s[0]:.0f}-{r.time_s[-1]:.0f} s" for r in recs if len(r))

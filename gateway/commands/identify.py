@@ -8,12 +8,14 @@ from pathlib import Path
 from gateway import BUNDLED, plotting
 from gateway.commands._common import (
     add_recording_options,
+    add_split_option,
     check_output,
     fail_if_exists,
     positive_int,
     progress_bar,
     read_recordings,
     refuse_writing_over_inputs,
+    split_those_with,
 )
 from gateway.errors import UsageError
 from gateway.identify import identify
@@ -56,6 +58,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "initial state as free decays")
     p.add_argument("--plot", metavar="PNG", help="also draw measured vs fitted displacement of every experiment")
     add_recording_options(p)
+    add_split_option(p)
     p.set_defaults(func=run)
 
 
@@ -95,6 +98,8 @@ def run(args: argparse.Namespace) -> int:
     recs = read_recordings(args.experiments, profile, period_s=args.period_s, require_displacement=True)
     # a production run may carry its displacement as probe points only (probe_* columns): checked in identify
     prod = read_recordings(args.production, profile, period_s=args.period_s, require_displacement=False)
+    if args.split_by:  # a file of several runs (days): each run an experiment or production run of its own
+        recs, prod = split_those_with(recs, args.split_by, prod), split_those_with(prod, args.split_by, recs)
     if prod and args.method != "joint":
         raise UsageError("--production: production runs join the joint method only (--method joint)")
     total = len(profile.axes) * (len(structures) if args.method == "joint" else len(profile.factors))

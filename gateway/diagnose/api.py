@@ -22,7 +22,7 @@ from gateway import __version__
 from gateway.diagnose.adequacy import Adequacy, assess
 from gateway.diagnose.compare import Comparison, compare
 from gateway.diagnose.confusable import Confusion, confusions
-from gateway.diagnose.data import Stack, build_stack, recording_labels, split_part
+from gateway.diagnose.data import Stack, build_stack, recording_labels
 from gateway.diagnose.explain import Explanation, explain, held_corrections
 from gateway.diagnose.extend import extend_model
 from gateway.diagnose.hypotheses import FactorInfo, Hypothesis, catalogue
@@ -52,7 +52,7 @@ from gateway.model.envelope import envelope_of
 from gateway.model.model import ThermalModel
 from gateway.prepare import prepare
 from gateway.profile import Profile
-from gateway.recording import Recording, continued
+from gateway.recording import Recording, continued, split_part
 from gateway.replay import AxisFigures, Estimate, estimate
 
 

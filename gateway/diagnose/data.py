@@ -11,7 +11,6 @@ exactly what diagnosis fitted.
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,7 +23,7 @@ from gateway.model.inputs import Column, DerivedInput, evaluate_inputs, hold_mis
 from gateway.model.model import PathTF, ThermalModel
 from gateway.model.terms import FirstOrder, Term
 from gateway.prepare import MIN_PROBE_POINTS, Prepared, prepare
-from gateway.recording import Recording
+from gateway.recording import Recording, split_part
 from gateway.replay import LEAD_IN_MAX
 
 
@@ -324,12 +323,6 @@ def log_grid(lo: float, hi: float, per_decade: float = 5.0) -> list[float]:
         return [float(lo)]
     n = max(2, math.ceil(math.log10(hi / lo) * per_decade) + 1)
     return [float(v) for v in np.geomspace(lo, hi, n)]
-
-
-def split_part(source: str) -> tuple[str, str] | None:
-    """(column, value) of a run of a file split by a column (``file.csv[day=7]``, see ``--split-by``), else None."""
-    m = re.search(r"\[([^=\]]+)=([^\]]+)\]$", source)
-    return (m.group(1), m.group(2)) if m else None
 
 
 def recording_labels(sources: Sequence[str]) -> list[str]:

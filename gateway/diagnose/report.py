@@ -9,9 +9,9 @@ from typing import Any
 import numpy as np
 
 from gateway.diagnose.api import Diagnosis, Validation
-from gateway.diagnose.data import split_part
 from gateway.diagnose.refit import identification_length_s
 from gateway.diagnose.search import Term, Trial
+from gateway.recording import split_part
 from gateway.replay import AxisFigures
 from gateway.strict_json import nan_to_none
 
@@ -187,13 +187,15 @@ def _plain(x: Any) -> Any:
 
 def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = "", title: str = "",
                 validations: Sequence[Validation] = (), hedges: Sequence[str] = (), profile: str = "",
-                model_path: str = "") -> str:
+                model_path: str = "", recording_options: str = "") -> str:
     """The report as Markdown.
 
     ``profile``, ``model_path``: the paths the printed ``cncgw estimate`` commands use, as from the folder
-    ``cncgw diagnose`` ran in (the recordings' paths are as given there).
+    ``cncgw diagnose`` ran in (the recordings' paths are as given there); ``recording_options``: the options
+    the recordings were read with (``--period-s 60``), which those commands need too.
     """
-    estimate_cmd = f"cncgw estimate --profile {profile or 'PROFILE'} --model {model_path or model_file or 'MODEL'}"
+    estimate_cmd = (f"cncgw estimate --profile {profile or 'PROFILE'} --model {model_path or model_file or 'MODEL'}"
+                    + (f" {recording_options}" if recording_options else ""))
     L: list[str] = [f"# Diagnosis{': ' + title if title else ''}", ""]
     labels = d.stack.labels
     L += [f"Recordings: {', '.join(labels)}. Model axes: {', '.join(d.model.axes)}. "
@@ -245,10 +247,10 @@ def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = 
             opts = " ".join(f"--{k.replace('_', '-')} {val}" for k, val in v.settings.items()
                             if k in ("initial_state", "history") and val not in ("rest",))
             part = split_part(v.recording)
-            if part:  # estimate takes whole files: a run of a split file has no path of its own
-                L.append(f"- {v.label}: `{estimate_cmd} {opts + ' ' if opts else ''}FILE`, FILE holding only the "
-                         f"rows of {v.recording.removesuffix(f'[{part[0]}={part[1]}]')} where {part[0]} is "
-                         f"{part[1]}")
+            if part:  # a run of a split file: estimate splits the file the same way, this run among the others
+                file = v.recording.removesuffix(f"[{part[0]}={part[1]}]")
+                L.append(f"- {v.label}: `{estimate_cmd} {opts + ' ' if opts else ''}--split-by {part[0]} {file}` "
+                         f"(its {part[0]} {part[1]})")
             else:
                 L.append(f"- {v.label}: `{estimate_cmd} {opts + ' ' if opts else ''}{v.recording}`")
         L.append("")
