@@ -274,6 +274,17 @@ def read_recording(
         raise RecordingError(_clip(str(exc), 1000)) from None
 
 
+#: the first bytes of files people pass for a recording that are no text: what each is
+_MAGIC = ((b"PK\x03\x04", "a zip archive (an Excel .xlsx workbook is one)"),
+          (b"\xd0\xcf\x11\xe0\xa1\xb1\x1a\xe1", "an Office document of the old format (an Excel .xls workbook)"),
+          (b"%PDF", "a PDF document"), (b"\x89PNG", "a PNG image"), (b"\x1f\x8b", "a gzip archive"))
+
+
+def _binary_kind(head: bytes) -> str:
+    """What a file that is no text is, from its first bytes ("" when not known)."""
+    return next((kind for magic, kind in _MAGIC if head.startswith(magic)), "")
+
+
 def _read_recording(path: Path, *, factor_columns: Mapping[str, str], displacement_columns: Mapping[str, str],
                     time_column: str | None, period_s: float, require_displacement: bool,
                     text: str | None) -> Recording:
@@ -286,9 +297,16 @@ def _read_recording(path: Path, *, factor_columns: Mapping[str, str], displaceme
         except FileNotFoundError:
             raise RecordingError(f"{path}: file not found") from None
         except UnicodeDecodeError as exc:  # a spreadsheet's "CSV" in its ANSI code page (a degree sign, a mu)
+            kind = _binary_kind(exc.object)
+            if kind:  # the workbook itself, not a CSV saved from it
+                raise RecordingError(f"{path}: {kind}, not a CSV text: expected a recording as CSV (in Excel: save "
+                                     'as "CSV UTF-8")') from None
             line = exc.object[:exc.start].count(b"\n") + 1
             raise RecordingError(f"{path}:{line}: byte 0x{exc.object[exc.start]:02x} is not UTF-8: expected a UTF-8 "
                                  'text (in Excel save as "CSV UTF-8")') from None
+        except IsADirectoryError:
+            raise RecordingError(f"{path}: a folder, not a file: expected a recording (CSV); to give every "
+                                 f"recording in it: {path}/*.csv") from None
         except OSError as exc:
             raise RecordingError(f"{path}: cannot read: {exc}") from None
     else:

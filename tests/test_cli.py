@@ -154,7 +154,8 @@ def test_paper_method_from_the_cli(workdir, capsys):
     (["identify", "--profile", "lathe.toml", "exp1.csv", "--structures", "third_order"], 2,
      "argument --structures: third_order: expected a comma-separated list from first_order, second_order, two_modes"),
     (["demo", "-o", "d", "--hours", "1"], 2,
-     "cncgw: error: --hours 1: the validation run 'spindle-feeds' rests for its first 1 h (the spindle starts then)"),
+     "cncgw: error: --hours 1: the validation run 'spindle-feeds' rests for its first 1 h (the spindle starts then)"
+     " and needs at least 10 min of work after it: expected more than 1 h 10 min, e.g. --hours 3"),
 ])
 def test_user_mistakes_are_one_line_errors(workdir, capsys, argv, code, message):
     try:
@@ -263,3 +264,18 @@ def test_identify_on_fewer_windows_than_parameters_says_so(workdir, capsys):
     err = capsys.readouterr().err
     assert err.startswith("cncgw: error: axis x: 4 windows with measured displacement cannot fix the 5 parameters of "
                           "the simplest structure (first_order, 2 paths, 1 experiment offsets): expected at least 6")
+
+
+def test_a_workbook_or_a_folder_given_for_a_recording_is_named_as_such(workdir, capsys):
+    # an Excel workbook was "byte 0xd6 is not UTF-8 ... save as CSV UTF-8" at line 1; a folder was a raw OS error
+    Path("ACE_X.xlsx").write_bytes(b"PK\x03\x04\x14\x00\x06\x00\x08\x00\xd6\xff" + bytes(range(256)))
+    Path("runs").mkdir()
+    for given, message in (("ACE_X.xlsx", "ACE_X.xlsx: a zip archive (an Excel .xlsx workbook is one), not a CSV "
+                                          'text: expected a recording as CSV (in Excel: save as "CSV UTF-8")'),
+                           ("runs", "runs: a folder, not a file: expected a recording (CSV); to give every "
+                                    "recording in it: runs/*.csv")):
+        assert main(["identify", "--profile", "lathe.toml", given, "-o", "m.toml"]) != 0
+        err = capsys.readouterr().err
+        assert message in err
+        assert "Traceback" not in err
+        assert "Errno" not in err

@@ -71,8 +71,8 @@ def run(args: argparse.Namespace) -> int:
     if args.hours * 3600.0 <= rest_s + 600.0:
         # the machine rests first: a run that ends there compensates nothing and would print 0 % as a result
         raise UsageError(f"--hours {args.hours:g}: the validation run '{VALIDATION}' rests for its first "
-                         f"{rest_s / 3600:g} h (the spindle starts then): expected more than {rest_s / 3600 + 1 / 6:g} "
-                         f"h, e.g. --hours 3 (the default 8 plays all of it)")
+                         f"{rest_s / 3600:g} h (the spindle starts then) and needs at least 10 min of work after it: "
+                         f"expected more than {_h(rest_s + 600.0)}, e.g. --hours 3 (the default 8 plays all of it)")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     profile = load_profile(PROFILE)
@@ -224,3 +224,9 @@ def _audit_matches(data: Path, machine) -> tuple[bool, int]:
     applied = {tuple(round(v, 6) for v in offs.values()) for _, offs in machine.compensation_log}
     ok = all(w.verified and tuple(round(w.commanded_um[a], 6) for a in ("x", "y", "z")) in applied for w in writes)
     return ok, len(writes)
+
+
+def _h(seconds: float) -> str:
+    """``1 h 10 min``: hours and minutes as a person writes them."""
+    h, m = divmod(round(seconds / 60.0), 60)
+    return " ".join(p for p in (f"{h} h" if h else "", f"{m} min" if m else "") if p) or "0 min"
