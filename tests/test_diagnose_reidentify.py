@@ -213,6 +213,12 @@ def test_the_written_model_reproduces_the_reported_validation_through_cncgw_esti
     assert reported["rms_um"] < 0.5 * doc["validation"][0]["before"]["z"]["rms_um"]
     md = (out / "report.md").read_text()
     assert "## Validation: recordings never used for fitting or selection" in md
+    # the table's peak: each model's own (one figure where they agree), the one its % is of
+    row = next(ln for ln in md.splitlines() if ln.startswith("| day6 |"))
+    before, after = (doc["validation"][0][k]["z"]["peak_um"] for k in ("before", "after"))
+    shown = [float(p) for p in row.split(" | ")[7].removesuffix(" um").split(" / ")]
+    assert shown[0] == pytest.approx(before, rel=5e-3)
+    assert shown[-1] == pytest.approx(after, rel=5e-3)
     assert "## Models compared on held-out data" in md
     assert md.index("## Verdict") < md.index("## Conclusions")
     assert "validation.png" in {p.name for p in out.iterdir()}
