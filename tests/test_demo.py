@@ -12,8 +12,16 @@ from gateway.model import load_model
 def test_demo_runs_closed_loop_and_cuts_the_error(tmp_path, capsys):
     # the first 3 h of the validation run: the 1000 rpm phase with its peak, then cooling
     assert main(["demo", "-o", str(tmp_path / "out"), "--hours", "3"]) == 0
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
     assert "3/3 closed loop" in out
+    # the gateway's coverage warnings (the y feed's current per feed below the experiments' in windows 60-109)
+    # come after the table, not on stderr between its rows
+    assert "leaves the identification's coverage" not in err
+    warned = out.index("the gateway warned")
+    assert out.index("window 60 leaves the identification's coverage: y_i_sq per y_feed") > warned
+    *_, last_row = re.finditer(r"^\s+\d+\.\dh\s+\d+rpm .*$", out, flags=re.M)
+    assert warned > last_row.end()
+    assert "-0.00" not in out
     table = re.findall(r"^\s+\d+\.\dh\s+\d+rpm\s+(-?[\d.]+) um\s+(-?[\d.]+) um\s+(-?[\d.]+) um\s+(-?[\d.]+) um", out,
                        flags=re.M)
     assert len(table) >= 4  # a row every 30 simulated minutes once the gateway runs (it starts during the idle hour)

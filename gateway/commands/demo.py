@@ -23,11 +23,13 @@ faster.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import logging
 import queue
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 from gateway import BUNDLED
@@ -145,7 +147,8 @@ def _live(args: argparse.Namespace, out: Path, model: object) -> int:
           f"on 127.0.0.1, {pace}, estimates each simulated minute and writes offsets to the CNC (watchdog "
           f"{watchdog_s:g} s of clock time)\n")
     t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix="cncgw-demo-") as tmp, serve(machine, clock, config) as devices:
+    with _warnings_held() as warned, tempfile.TemporaryDirectory(prefix="cncgw-demo-") as tmp, \
+            serve(machine, clock, config) as devices:
         path = live_profile(devices, Path(tmp) / "sim-vmc-live.toml", opcua_port=0, max_step_um=5.0,
                             period_s=LOCKSTEP_PERIOD_S if lockstep else None,
                             heartbeat_period_s=watchdog_s / 5, watchdog_s=watchdog_s)
@@ -172,6 +175,10 @@ def _live(args: argparse.Namespace, out: Path, model: object) -> int:
           f"{health.compensation.writes} verified writes, {health.compensation.beats} heartbeats, "
           f"{audit_n} audited writes: {'every one applied as written' if audit_ok else 'MISMATCHES (see audit)'}")
     print(_validity(windows, not_good, lockstep=lockstep, speedup=speedup))
+    if warned:  # held during the table, where they read like a failure between its rows
+        print(f"    the gateway warned {len(warned)} time(s) (also in its log when it runs as a service):")
+        for message in warned:
+            print(f"      {message}")
     errs = closed_loop_errors(machine, end_s)
     print("\n    tool-to-table thermal error over the run (machine's ground truth, offsets the CNC applied):\n")
     print(f"    {'axis':<4} {'max error without':>18} {'with compensation':>18} {'reduction':>10}")
@@ -208,8 +215,37 @@ def _row(machine, record, update, offsets, gw) -> None:
     left = machine.residual_um(t)["z"]
     alarms = ",".join(a.name for a in gw.alarms.active()) if gw.alarms else ""
     rpm = record.factors.get("spindle_speed", float("nan"))
-    print(f"    {t / 3600:>5.1f}h {rpm:>5.0f}rpm {update.estimate_um['z']:>8.2f} um {offsets.get('z', 0.0):>6.2f} um "
-          f"{true:>11.2f} um {left:>8.2f} um  {alarms}", flush=True)
+    est, offset = _um(update.estimate_um["z"]), _um(offsets.get("z", 0.0))
+    print(f"    {t / 3600:>5.1f}h {rpm:>5.0f}rpm {est:>8} um {offset:>6} um {_um(true):>11} um {_um(left):>8} um  "
+          f"{alarms}", flush=True)
+
+
+def _um(x: float) -> str:
+    """Two decimals, without the minus of a value that rounds to zero ("-0.00")."""
+    text = f"{x:.2f}"
+    return text[1:] if text == "-0.00" else text
+
+
+class _Held(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+
+@contextlib.contextmanager
+def _warnings_held() -> Iterator[list[str]]:
+    """The gateway's warnings kept, not printed, while the block runs: their messages, for after it."""
+    held, log = _Held(), logging.getLogger("gateway")
+    log.addHandler(held)
+    propagate, log.propagate = log.propagate, False
+    try:
+        yield held.messages
+    finally:
+        log.removeHandler(held)
+        log.propagate = propagate
 
 
 def _audit_matches(data: Path, machine) -> tuple[bool, int]:
