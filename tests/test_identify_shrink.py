@@ -100,3 +100,21 @@ def test_one_experiment_takes_no_prior_and_claims_no_held_out_error():
     two = identify(recordings(FIRST_ORDER_PLANT, PAPER_DESIGN[:2], noise_um=0.2), factors=F, axes=("z",))
     assert two.shrinkage[0].left_out
     assert "predicted from the others, worst: " in "\n".join(two.report)
+
+
+def test_a_factor_on_in_every_recording_is_not_said_to_lack_excitation(shared_data):
+    # the real lathe's front spindle temperature, high for 39.9 h in 12 of 12 days, was "too little excitation"
+    from tests_paths import ROOT
+
+    from gateway.commands._common import split_by
+    from gateway.profile import load_profile
+    from gateway.recording import read_for_profile
+
+    profile = load_profile(ROOT / "bench" / "profiles" / "ace-lathe.toml")
+    days = split_by(read_for_profile(shared_data / "ace-lathe-thermal" / "ace_lathe_thermal_long.csv", profile,
+                                     period_s=60.0), "day")
+    result = identify(days[:12], factors=profile.factor_names, axes=profile.axes)
+    (poor,) = result.shrinkage[0].poorly_determined
+    assert poor.why.startswith("too little change in it for its gain to show (spindle_front_c at >= 10 % of its "
+                               "highest for 39.9 h, in 12 of 12 recordings: on long enough")
+    assert "too little excitation" not in poor.why

@@ -215,8 +215,11 @@ def shrink_axis(problem: AxisProblem, fit: AxisFit, *, n_eff: float, kappas: Seq
                 du = np.nan_to_num(es.du[j])
                 on_h = float(np.count_nonzero(du >= 0.1 * u_max[j])) * es.dt_s / 3600.0
                 moved = int(np.count_nonzero(np.any(du != 0, axis=1)))
-                why = (f"too little excitation ({factors[j]} at >= 10 % of its highest for {on_h:.3g} h, in {moved} "
-                       f"of {es.n_exp} recordings)")
+                where = f"{factors[j]} at >= 10 % of its highest for {on_h:.3g} h, in {moved} of {es.n_exp} recordings"
+                # hours on in most recordings are not what is missing: a gain is seen in the factor's changes
+                why = (f"too little excitation ({where})" if moved < max(2, es.n_exp / 2) else
+                       f"too little change in it for its gain to show ({where}: on long enough, but its rises and "
+                       "falls move this axis too little against the noise and the other paths)")
         determinations.append(PathDetermination(
             factor=factors[j], gain=gain_j, unshrunk=float(unshrunk[:p_paths][cols].sum()), sd=sd,
             prior_sd=prior, poorly=poorly, why=why))
