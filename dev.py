@@ -83,11 +83,18 @@ def _install_with_uv() -> str:
     fails, pip does the job as before.
     """
     quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
-    if subprocess.call([str(PY), "-m", "pip", "install", "--quiet", UV], **quiet) != 0:
+    # a wheel only: where there is none, building uv from source would take Rust and minutes
+    if subprocess.call([str(PY), "-m", "pip", "install", "--quiet", "--only-binary", "uv", UV], **quiet) != 0:
         print(f"dev.py: {UV} could not be installed; pip installs instead", flush=True)
         return ""
-    code = subprocess.call([str(PY), "-m", "uv", "pip", "install", "--quiet", "--python", str(PY), "-c", str(LOCK),
-                            "-e", f"{ROOT}[test]"])
+    # uv reads no pip.conf: the index pip is pointed at by the environment is passed on (a mirror behind a
+    # firewall); one set in pip.conf alone is not (uv then takes the lock's versions from PyPI, or fails over to
+    # pip below where PyPI is out of reach)
+    index = [a for env, flag in (("PIP_INDEX_URL", "--index-url"), ("PIP_EXTRA_INDEX_URL", "--extra-index-url"),
+                                 ("PIP_FIND_LINKS", "--find-links"))
+             for v in os.environ.get(env, "").split() for a in (flag, v)]
+    code = subprocess.call([str(PY), "-m", "uv", "pip", "install", "--quiet", "--python", str(PY), *index,
+                            "-c", str(LOCK), "-e", f"{ROOT}[test]"])
     if code != 0:
         print(f"dev.py: uv stopped with code {code}; pip installs instead", flush=True)
         return ""

@@ -292,6 +292,9 @@ def _read_recording(path: Path, *, factor_columns: Mapping[str, str], displaceme
         raise RecordingError(f"{path}: the row period must be from {MIN_PERIOD_S:g} s to {MAX_PERIOD_S:g} s (a day), "
                              f"got {period_s!r}")
     if text is None:
+        if path.is_dir():  # checked first: Windows opens a folder with "permission denied", not IsADirectoryError
+            raise RecordingError(f"{path}: a folder, not a file: expected a recording (CSV); give its files one by "
+                                 f"one (in a shell: {path}/*.csv)")
         try:
             text = path.read_text(encoding="utf-8-sig")
         except FileNotFoundError:
@@ -304,9 +307,6 @@ def _read_recording(path: Path, *, factor_columns: Mapping[str, str], displaceme
             line = exc.object[:exc.start].count(b"\n") + 1
             raise RecordingError(f"{path}:{line}: byte 0x{exc.object[exc.start]:02x} is not UTF-8: expected a UTF-8 "
                                  'text (in Excel save as "CSV UTF-8")') from None
-        except IsADirectoryError:
-            raise RecordingError(f"{path}: a folder, not a file: expected a recording (CSV); to give every "
-                                 f"recording in it: {path}/*.csv") from None
         except OSError as exc:
             raise RecordingError(f"{path}: cannot read: {exc}") from None
     else:

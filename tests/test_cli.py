@@ -272,10 +272,39 @@ def test_a_workbook_or_a_folder_given_for_a_recording_is_named_as_such(workdir, 
     Path("runs").mkdir()
     for given, message in (("ACE_X.xlsx", "ACE_X.xlsx: a zip archive (an Excel .xlsx workbook is one), not a CSV "
                                           'text: expected a recording as CSV (in Excel: save as "CSV UTF-8")'),
-                           ("runs", "runs: a folder, not a file: expected a recording (CSV); to give every "
-                                    "recording in it: runs/*.csv")):
+                           ("runs", "runs: a folder, not a file: expected a recording (CSV); give its files one "
+                                    "by one (in a shell: runs/*.csv)")):
         assert main(["identify", "--profile", "lathe.toml", given, "-o", "m.toml"]) != 0
         err = capsys.readouterr().err
         assert message in err
         assert "Traceback" not in err
         assert "Errno" not in err
+
+
+def test_a_file_split_by_a_date_keeps_its_dates_and_two_runs_of_one_name_are_not_written_over(workdir, capsys):
+    from gateway.commands._common import split_by
+    from gateway.recording import read_for_profile
+
+    assert main(["identify", "--profile", "lathe.toml", "exp1.csv", "exp2.csv", "-o", "m.toml"]) == 0
+    lines = Path("val.csv").read_text().splitlines()
+    head = [ln for ln in lines if ln.startswith("#")]
+    body = [ln for ln in lines if not ln.startswith("#")]
+    half = (len(body) - 1) // 2
+    dated = [body[0] + ",date"] + [f"{ln},{20240105 if k < half else 20240106}" for k, ln in enumerate(body[1:])]
+    Path("dated.csv").write_text("\n".join([*head, *dated]) + "\n")
+    from gateway.profile import load_profile
+
+    runs = split_by(read_for_profile("dated.csv", load_profile("lathe.toml")), "date")
+    assert [r.source for r in runs] == ["dated.csv[date=20240105]", "dated.csv[date=20240106]"]  # not 2.02401e+07
+    for d in ("a", "b"):
+        Path(d).mkdir()
+        Path(d, "val.csv").write_text(Path("val.csv").read_text())
+    capsys.readouterr()
+    assert main(["estimate", "--profile", "lathe.toml", "--model", "m.toml", "a/val.csv", "b/val.csv", "-o", "out"]) == 2
+    err = capsys.readouterr().err
+    assert "-o out: a/val.csv and b/val.csv would both be written to out/val.pred.csv" in err
+    assert not Path("out").exists()
+    assert main(["estimate", "--profile", "lathe.toml", "--model", "m.toml", "dated.csv", "--split-by", "date", "-o",
+                 "out"]) == 0
+    assert sorted(p.name for p in Path("out").iterdir()) == ["dated[date=20240105].pred.csv",
+                                                           "dated[date=20240106].pred.csv"]

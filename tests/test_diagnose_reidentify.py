@@ -178,6 +178,14 @@ def test_validation_starts_from_the_day_before_or_from_a_fitted_state(plant_data
     assert split.label == "day 5"
     assert split.start == "at rest (it starts with the machine in equilibrium)"
     assert "history" not in split.settings
+    # nor does a whole file carry into a run of a split one, or a run into the file after it
+    (after_run,) = validate(d, [after_day4], earlier=[run4])
+    assert after_run.start.startswith(("at rest", "estimated from its first hour"))
+    (into_run,) = validate(d, [run5], earlier=[days[3]])
+    assert not into_run.start.startswith("carried")
+    # files read with --period-s each count their times from 0: only --history carries
+    (unchained,) = validate(d, [after_day4], earlier=days, chain=False)
+    assert not unchained.start.startswith("carried")
     warm = after_day4.slice(600, 1440)  # starts mid-work, nothing before it
     (fitted,) = validate(d, [warm])
     assert fitted.settings["initial_state"] == "fit"
@@ -317,7 +325,8 @@ def test_a_file_of_several_runs_is_split_alike_by_identify_diagnose_and_estimate
     assert (f"--validate {day_file}[run=1]: the same data as {day_file}[run=1], which is diagnosed: validation "
             "takes recordings never used for fitting or selection") in capsys.readouterr().err
     train = joined(tmp_path / "train.csv", days)
-    val = joined(tmp_path / "val.csv", [_day(5, seed=50), fresh])  # run 2 follows run 1 in time: not carried
+    (tmp_path / "my runs").mkdir()  # a folder with a space: the printed command quotes it
+    val = joined(tmp_path / "my runs" / "val.csv", [_day(5, seed=50), fresh])  # run 2 follows run 1: not carried
     assert main(["diagnose", "--profile", str(profile), "--model", str(model), exp_file, train, "--split-by",
                  "run", "-o", str(out), "--validate", val]) == 0
     capsys.readouterr()
@@ -326,7 +335,7 @@ def test_a_file_of_several_runs_is_split_alike_by_identify_diagnose_and_estimate
     assert not v["start"].startswith("carried")
     md = (out / "report.md").read_text()
     (cmd,) = re.findall(rf"^- {re.escape(v['label'])}: `(cncgw estimate [^`]+)` \(its run 2\)$", md, flags=re.M)
-    assert cmd.endswith(f"--split-by run {val}")
+    assert cmd.endswith(f"--split-by run '{val}'")
     assert main([*shlex.split(cmd)[1:], "--json"]) == 0
     runs = {e["recording"]: e for e in json.loads(capsys.readouterr().out)}
     assert set(runs) == {f"{val}[run=1]", f"{val}[run=2]"}

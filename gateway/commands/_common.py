@@ -62,7 +62,8 @@ def split_by(rec: Recording, column: str) -> list[Recording]:
         raise UsageError(f'{rec.source}: --split-by: no numeric column "{column}" (numeric extra columns: {have})')
     held = hold_missing(np.asarray(values, float))
     cuts = [0, *(np.flatnonzero(np.diff(held) != 0) + 1).tolist(), len(rec)]
-    return [replace(rec.slice(a, b), source=f"{rec.source}[{column}={held[a]:g}]")
+    # the value as written (a date 20240105 stays whole, where :g made every run 2.02401e+07)
+    return [replace(rec.slice(a, b), source=f"{rec.source}[{column}={held[a]:.15g}]")
             for a, b in itertools.pairwise(cuts) if b > a]
 
 

@@ -27,6 +27,7 @@ import contextlib
 import dataclasses
 import logging
 import queue
+import sys
 import tempfile
 import time
 from collections.abc import Iterator
@@ -176,7 +177,7 @@ def _live(args: argparse.Namespace, out: Path, model: object) -> int:
           f"{audit_n} audited writes: {'every one applied as written' if audit_ok else 'MISMATCHES (see audit)'}")
     print(_validity(windows, not_good, lockstep=lockstep, speedup=speedup))
     if warned:  # held during the table, where they read like a failure between its rows
-        print(f"    the gateway warned {len(warned)} time(s) (also in its log when it runs as a service):")
+        print(f"    the gateway warned {len(warned)} time(s) (in its log as they come when it runs as a service):")
         for message in warned:
             print(f"      {message}")
     errs = closed_loop_errors(machine, end_s)
@@ -226,26 +227,40 @@ def _um(x: float) -> str:
     return text[1:] if text == "-0.00" else text
 
 
-class _Held(logging.Handler):
+class _Held(logging.Filter):
+    """Keeps the gateway's warnings and errors back from the handlers it is on; lets everything else through."""
+
     def __init__(self) -> None:
-        super().__init__(logging.WARNING)
+        super().__init__()
         self.messages: list[str] = []
 
-    def emit(self, record: logging.LogRecord) -> None:
-        self.messages.append(record.getMessage())
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.name.split(".")[0] == "gateway" and record.levelno >= logging.WARNING:
+            text = record.getMessage()
+            self.messages.append(text if record.levelno == logging.WARNING else f"{record.levelname}: {text}")
+            return False
+        return True
 
 
 @contextlib.contextmanager
 def _warnings_held() -> Iterator[list[str]]:
-    """The gateway's warnings kept, not printed, while the block runs: their messages, for after it."""
-    held, log = _Held(), logging.getLogger("gateway")
-    log.addHandler(held)
-    propagate, log.propagate = log.propagate, False
+    """The gateway's warnings kept, not printed, while the block runs: their messages, for after it.
+
+    Held at the root logger's handlers (where ``cncgw`` prints), so ``-v``'s info and debug lines still go
+    out as they come. Should the block fail, what was held is printed before the error goes on.
+    """
+    held, handlers = _Held(), list(logging.getLogger().handlers)
+    for h in handlers:
+        h.addFilter(held)
     try:
         yield held.messages
+    except BaseException:
+        for message in held.messages:
+            print(f"cncgw demo: gateway warned: {message}", file=sys.stderr)
+        raise
     finally:
-        log.removeHandler(held)
-        log.propagate = propagate
+        for h in handlers:
+            h.removeFilter(held)
 
 
 def _audit_matches(data: Path, machine) -> tuple[bool, int]:

@@ -61,7 +61,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--history", metavar="RECORDING",
                    help="a recording that ran just before the first --validate recording: it starts in the state "
                         "this one left (recordings given that end one window before another starts are chained "
-                        "that way on their own; the runs of a --split-by file never are)")
+                        "that way on their own; the runs of a --split-by file never are, nor files read with "
+                        "--period-s, whose times each count from 0)")
     p.add_argument("--use-signal", action="append", default=[], metavar="COLUMN",
                    help="a recorded column whose meaning you have checked (e.g. a temperature of a known part): a "
                         "hypothesis on it may be written into the model; other recorded signals are only named "
@@ -111,7 +112,9 @@ def run(args: argparse.Namespace) -> int:
         hedges.append(f"rows were taken as {args.period_s:g} s apart (--period-s): every time constant and dead time "
                       "found scales with the true period")
         d.conclusions.append(hedges[-1])
-    validations = validate(d, vrecs, earlier=recs, history=history, gap_policy=args.gap_policy) if vrecs else []
+    # with --period-s every file's times count from 0: one ending where another starts is no sign it ran before
+    validations = validate(d, vrecs, earlier=recs, history=history, gap_policy=args.gap_policy,
+                           chain=args.period_s is None) if vrecs else []
     extra = {"model": str(model_path), "profile": str(profile.path)}
     written = {}
     if out is not None:
@@ -151,5 +154,5 @@ def run(args: argparse.Namespace) -> int:
 
 def _recording_options(args: argparse.Namespace) -> str:
     """The options the recordings were read with, as ``cncgw estimate`` must be given them to read the same."""
-    opts = [f"--period-s {args.period_s:g}"] if args.period_s else []
+    opts = [f"--period-s {args.period_s:.15g}"] if args.period_s else []
     return " ".join(opts + ([f"--gap-policy {args.gap_policy}"] if args.gap_policy != "hold" else []))

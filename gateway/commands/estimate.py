@@ -96,6 +96,13 @@ def run(args: argparse.Namespace) -> int:
         else:
             if out.exists() and not out.is_dir():
                 raise GatewayError(f"{out}: expected a directory for {len(ests)} recordings")
+            names = [f"{recording_name(e.recording)}.pred.csv" for e in ests]
+            same = next(((a, b) for i, a in enumerate(ests) for b in ests[i + 1:]
+                         if recording_name(a.recording) == recording_name(b.recording)), None)
+            if same:  # one file would silently replace the other
+                raise UsageError(f"-o {out}: {same[0].recording} and {same[1].recording} would both be written to "
+                                 f"{out / names[ests.index(same[0])]}: expected recordings of distinct file names "
+                                 "(estimate them one folder at a time)")
             out.mkdir(parents=True, exist_ok=True)
             for e in ests:
                 (out / f"{recording_name(e.recording)}.pred.csv").write_text(

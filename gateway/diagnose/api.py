@@ -484,30 +484,33 @@ class Validation:
 
 
 def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence[Recording] = (),
-             history: Recording | None = None, gap_policy: str = "hold") -> list[Validation]:
+             history: Recording | None = None, gap_policy: str = "hold", chain: bool = True) -> list[Validation]:
     """Estimate ``recordings`` with the identified and the written model, as ``cncgw estimate`` would.
 
     The model's state at each recording's start: carried from the recordings that ran just before it (any
     of ``earlier`` and ``recordings`` that ends one window before it starts, and so on back: what
     ``cncgw run`` does with its stored history), or from ``history`` for the first; else, when the
-    recording starts warm (:func:`starts_warm`), fitted to its first hour; else at rest.
+    recording starts warm (:func:`starts_warm`), fitted to its first hour; else at rest. ``chain=False``
+    (times counted from ``--period-s``, each file from 0: one ending where another starts says nothing): only
+    ``history`` carries.
     """
     pool = [*earlier, *recordings]
-    # named as the report names the diagnosed recordings: files of the same name by their folders too
+    # the diagnosed recordings as the report names them; the others (validation, history) apart from those
+    label = dict(zip(d.stack.sources, d.stack.labels, strict=True))
     sources = list(dict.fromkeys([*d.stack.sources, *(r.source for r in pool),
                                   *([history.source] if history is not None else [])]))
-    label = dict(zip(sources, recording_labels(sources), strict=True))
+    label = dict(zip(sources, recording_labels(sources), strict=True)) | label
     out = []
     for k, rec in enumerate(recordings):
-        chain = _preceding(rec, pool)
-        if not chain and history is not None and k == 0:
-            chain = [history]
+        before_it = _preceding(rec, pool) if chain else []
+        if not before_it and history is not None and k == 0:
+            before_it = [history]
         hist = None
-        for part in chain:
+        for part in before_it:
             hist = part if hist is None else continued(hist, part)
         initial_state = "rest"
         if hist is not None:
-            start = f"carried from {', '.join(label[p.source] for p in chain)} (ran just before it)"
+            start = f"carried from {', '.join(label[p.source] for p in before_it)} (ran just before it)"
         else:
             warm = starts_warm(d.extended, rec, gap_policy=gap_policy)
             if warm:
@@ -526,15 +529,16 @@ def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence
 def _preceding(rec: Recording, pool: Sequence[Recording]) -> list[Recording]:
     """The recordings that ran just before ``rec``, each ending one window before the next starts, oldest first.
 
-    Two runs of a file split by a column (``--split-by``: ``file.csv[day=7]``) never: each starts in its own
-    equilibrium, as the diagnosis took them. Their times run on across the cut (a file of days written one
-    after the other, or times counted from ``--period-s``) whether or not the machine rested between them.
+    A run of a file split by a column (``--split-by``: ``file.csv[day=7]``) never follows or precedes another
+    recording: each starts in its own equilibrium, as the diagnosis took them. Their times run on across the
+    cut (a file of days written one after the other, or times counted from ``--period-s``) whether or not the
+    machine rested between them.
     """
     chain: list[Recording] = []
     cur = rec
     while True:
         prev = next((p for p in pool if p is not cur and p not in chain and len(p) and len(cur)
-                     and not (split_part(p.source) and split_part(cur.source))
+                     and not split_part(p.source) and not split_part(cur.source)
                      and abs(p.period_s - cur.period_s) < 1e-9 * cur.period_s
                      and 0.5 * cur.period_s < cur.time_s[0] - p.time_s[-1] <= 1.5 * cur.period_s), None)
         if prev is None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import shlex
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -194,7 +195,9 @@ def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = 
     ``cncgw diagnose`` ran in (the recordings' paths are as given there); ``recording_options``: the options
     the recordings were read with (``--period-s 60``), which those commands need too.
     """
-    estimate_cmd = (f"cncgw estimate --profile {profile or 'PROFILE'} --model {model_path or model_file or 'MODEL'}"
+    q = shlex.quote  # paths with spaces (a Windows user's folders) run as printed in a POSIX shell
+    estimate_cmd = (f"cncgw estimate --profile {q(profile) if profile else 'PROFILE'} "
+                    f"--model {q(model_path or model_file) if model_path or model_file else 'MODEL'}"
                     + (f" {recording_options}" if recording_options else ""))
     L: list[str] = [f"# Diagnosis{': ' + title if title else ''}", ""]
     labels = d.stack.labels
@@ -249,15 +252,15 @@ def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = 
         L.append("The same with the written model, from the folder `cncgw diagnose` ran in:")
         L.append("")
         for v in validations:
-            opts = " ".join(f"--{k.replace('_', '-')} {val}" for k, val in v.settings.items()
+            opts = " ".join(f"--{k.replace('_', '-')} {q(val)}" for k, val in v.settings.items()
                             if k in ("initial_state", "history") and val not in ("rest",))
             part = split_part(v.recording)
             if part:  # a run of a split file: estimate splits the file the same way, this run among the others
                 file = v.recording.removesuffix(f"[{part[0]}={part[1]}]")
-                L.append(f"- {v.label}: `{estimate_cmd} {opts + ' ' if opts else ''}--split-by {part[0]} {file}` "
+                L.append(f"- {v.label}: `{estimate_cmd} {opts + ' ' if opts else ''}--split-by {q(part[0])} {q(file)}` "
                          f"(its {part[0]} {part[1]})")
             else:
-                L.append(f"- {v.label}: `{estimate_cmd} {opts + ' ' if opts else ''}{v.recording}`")
+                L.append(f"- {v.label}: `{estimate_cmd} {opts + ' ' if opts else ''}{q(v.recording)}`")
         L.append("")
 
     flags = bound_flags(d)

@@ -213,8 +213,9 @@ def shrink_axis(problem: AxisProblem, fit: AxisFit, *, n_eff: float, kappas: Seq
                        f" (sd {sd_linear / max(sd_alone, 1e-300):.1f}x what its own excitation alone gives)")
             else:
                 du = np.nan_to_num(es.du[j])
-                on_h = float(np.count_nonzero(du >= 0.1 * u_max[j])) * es.dt_s / 3600.0
-                moved = int(np.count_nonzero(np.any(du != 0, axis=1)))
+                on = du >= 0.1 * u_max[j]
+                on_h = float(np.count_nonzero(on)) * es.dt_s / 3600.0
+                moved = int(np.count_nonzero(np.any(on, axis=1)))  # recordings where it was on at all
                 where = f"{factors[j]} at >= 10 % of its highest for {on_h:.3g} h, in {moved} of {es.n_exp} recordings"
                 # hours on in most recordings are not what is missing: a gain is seen in the factor's changes
                 why = (f"too little excitation ({where})" if moved < max(2, es.n_exp / 2) else
