@@ -331,6 +331,9 @@ def test_a_file_of_several_runs_is_split_alike_by_identify_diagnose_and_estimate
                  "run", "-o", str(out), "--validate", val]) == 0
     capsys.readouterr()
     doc = json.loads((out / "report.json").read_text())
+    # where the identified model is the one written, the validation table says why before equals after
+    assert ("the identified model is the one written, so before and after are the same" in
+            (out / "report.md").read_text()) == (doc["written"] == "identified")
     (v,) = [v for v in doc["validation"] if v["recording"].endswith("val.csv[run=2]")]
     assert not v["start"].startswith("carried")
     md = (out / "report.md").read_text()
@@ -344,3 +347,27 @@ def test_a_file_of_several_runs_is_split_alike_by_identify_diagnose_and_estimate
     preds = tmp_path / "preds"
     assert main([*shlex.split(cmd)[1:], "-o", str(preds)]) == 0
     assert sorted(p.name for p in preds.iterdir()) == ["val[run=1].pred.csv", "val[run=2].pred.csv"]
+
+
+def test_estimate_says_when_a_recording_it_starts_at_rest_seems_to_start_warm(tmp_path, plant_data, capsys):
+    # diagnose --validate estimates such a recording from its first hour; plain estimate started it at rest and
+    # said nothing, so its figures disagreed with the report's without a word (a real lathe's days 14 and 17)
+    _, days, _, base = plant_data
+    profile = tmp_path / "synthetic.toml"
+    profile.write_text(_PROFILE)
+    model = save_model(base, tmp_path / "base.model.toml")
+    warm = days[3].slice(600, 1440)  # starts mid-work
+    path = tmp_path / "warm.csv"
+    write_recording(path, time_s=warm.time_s, columns={**warm.factors, "z_um": warm.displacement["z"]})
+    rest = _day(3, seed=13, room=False)  # starts after a night at rest, in a steady room
+    calm = tmp_path / "calm.csv"
+    write_recording(calm, time_s=rest.time_s, columns={**rest.factors, "z_um": rest.displacement["z"]})
+    assert main(["estimate", "--profile", str(profile), "--model", str(model), str(path), str(calm), "--json"]) == 0
+    notes = {e["recording"]: e["notes"] for e in json.loads(capsys.readouterr().out)}
+    (said,) = [n for n in notes[str(path)] if "seems to start warm" in n]
+    assert said.endswith("--initial-state fit estimates its initial state from its first hour")
+    assert not any("seems to start warm" in n for n in notes[str(calm)])
+    assert main(["estimate", "--profile", str(profile), "--model", str(model), str(path), "--json",
+                 "--initial-state", "fit"]) == 0
+    (fitted,) = json.loads(capsys.readouterr().out)
+    assert not any("seems to start warm" in n for n in fitted["notes"])

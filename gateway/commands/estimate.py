@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -22,7 +23,7 @@ from gateway.errors import GatewayError, UsageError
 from gateway.prepare import INITIAL_CHOICES
 from gateway.profile import load_profile
 from gateway.recording import continued, recording_name, split_part
-from gateway.replay import ALIGN_CHOICES, INITIAL_STATES, estimate, metrics_json, plot_estimates
+from gateway.replay import ALIGN_CHOICES, INITIAL_STATES, estimate, metrics_json, plot_estimates, starts_warm
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -85,8 +86,17 @@ def run(args: argparse.Namespace) -> int:
         return _run_probed(args, profile, model, model_path, recs, history)
     ests = []
     for r in recs:
-        ests.append(estimate(model, r, initial=args.initial, gap_policy=args.gap_policy, align=args.align,
-                             history=history, initial_state=args.initial_state))
+        e = estimate(model, r, initial=args.initial, gap_policy=args.gap_policy, align=args.align, history=history,
+                     initial_state=args.initial_state)
+        if history is None and args.initial_state == "rest":
+            # a recording that starts mid-work, estimated from rest: its figures are of the wrong start (diagnose
+            # --validate estimates such a one from its first hour): said, with the option that does
+            warm = starts_warm(model, r, gap_policy=args.gap_policy)
+            if warm:
+                e = dataclasses.replace(e, notes=(*e.notes, f"it seems to start warm ({warm}), and is estimated "
+                                                            "from rest: --initial-state fit estimates its initial "
+                                                            "state from its first hour"))
+        ests.append(e)
         history = _carried(history, r)
     if args.output:
         out = Path(args.output)

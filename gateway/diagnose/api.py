@@ -53,7 +53,7 @@ from gateway.model.model import ThermalModel
 from gateway.prepare import prepare
 from gateway.profile import Profile
 from gateway.recording import Recording, continued, split_part
-from gateway.replay import AxisFigures, Estimate, estimate
+from gateway.replay import AxisFigures, Estimate, estimate, starts_warm
 
 
 @dataclass(kw_only=True)
@@ -545,38 +545,3 @@ def _preceding(rec: Recording, pool: Sequence[Recording]) -> list[Recording]:
             return chain[::-1]
         chain.append(prev)
         cur = prev
-
-
-def starts_warm(model: ThermalModel, rec: Recording, *, gap_policy: str = "hold") -> str:
-    """Why ``rec`` does not start in equilibrium ("" when it seems to).
-
-    Working at its first window, or a displacement that moves in its first hour far more than the model
-    started at rest predicts.
-    """
-    covered = model.info.get("deviation_range", {}) or {}
-    for f in model.factors:
-        v = rec.factors.get(f)
-        if v is None or not np.isfinite(v).any():
-            continue
-        first = float(v[np.isfinite(v)][0]) - float(model.reference.get(f, 0.0))
-        lo, hi = covered.get(f, [0.0, 0.0])
-        span = max(abs(float(lo)), abs(float(hi)))
-        if span > 0 and abs(first) > 0.1 * span:
-            unit = f" {model.units[f]}" if model.units.get(f) else ""
-            return f"{f} is {first:+.4g}{unit} from its rest level at the first window"
-    e = estimate(model, rec, gap_policy=gap_policy)
-    rel = e.time_s - e.time_s[0]
-    hour = rel <= 3600.0
-    for i, a in enumerate(model.axes):
-        y = e.measured[i]
-        ok = hour & np.isfinite(y)
-        if ok.sum() < 5:
-            continue
-        d = np.diff(y[np.isfinite(y)])
-        sigma = float(np.median(np.abs(d - np.median(d)))) / 0.6745 / math.sqrt(2) if d.size else 0.0
-        moved = float(np.ptp(y[ok]))
-        predicted = float(np.ptp(e.estimated[i][ok]))
-        if moved > max(6.0 * sigma, 3.0 * predicted, 1e-9):
-            return (f"axis {a} moves {moved:.3g} um in the first hour where the model, started at rest, predicts "
-                    f"{predicted:.3g} um")
-    return ""

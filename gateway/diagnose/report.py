@@ -232,7 +232,9 @@ def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = 
     if validations:
         L += ["## Validation: recordings never used for fitting or selection", "",
               "Estimated exactly as `cncgw estimate` does with the settings given, once with the identified model "
-              "and once with the written one (the written model file reproduces these figures).", "",
+              "and once with the written one (the written model file reproduces these figures)"
+              + (": the identified model is the one written, so before and after are the same." if
+                 d.comparison.chosen == "identified" else "."), "",
               "| recording | start | axis | RMS before | RMS after | max abs before | after | peak (before / after) "
               "| % of peak before "
               "| after |", "|---|---|---|---|---|---|---|---|---|---|"]
