@@ -106,17 +106,17 @@ def run(args: argparse.Namespace) -> int:
         else:
             if out.exists() and not out.is_dir():
                 raise GatewayError(f"{out}: expected a directory for {len(ests)} recordings")
-            names = [f"{recording_name(e.recording)}.pred.csv" for e in ests]
-            same = next(((a, b) for i, a in enumerate(ests) for b in ests[i + 1:]
-                         if recording_name(a.recording) == recording_name(b.recording)), None)
-            if same:  # one file would silently replace the other
-                raise UsageError(f"-o {out}: {same[0].recording} and {same[1].recording} would both be written to "
-                                 f"{out / names[ests.index(same[0])]}: expected recordings of distinct file names "
-                                 "(estimate them one folder at a time)")
-            out.mkdir(parents=True, exist_ok=True)
+            files: dict[str, str] = {}  # prediction file name -> the recording written to it
             for e in ests:
-                (out / f"{recording_name(e.recording)}.pred.csv").write_text(
-                    e.to_csv({**meta, "recording": e.recording}))
+                name = f"{recording_name(e.recording)}.pred.csv"
+                if name in files:  # one file would silently replace the other
+                    raise UsageError(f"-o {out}: {files[name]} and {e.recording} would both be written to "
+                                     f"{out / name}: expected recordings of distinct file names (estimate them one "
+                                     "folder at a time)")
+                files[name] = e.recording
+            out.mkdir(parents=True, exist_ok=True)
+            for name, e in zip(files, ests, strict=True):
+                (out / name).write_text(e.to_csv({**meta, "recording": e.recording}))
     if args.json:
         print(metrics_json(ests))
     else:
