@@ -485,7 +485,7 @@ def _worst_pct_vs_truth(profile: Path, model: Path, day: Path, work: Path, worst
     """
     out = dict(worst)
     pred = work / f"{day.stem}.estimate.csv"
-    run_cli(["estimate", "--profile", profile, "--model", model, day, "-o", pred])
+    run_cli(["estimate", "--profile", profile, "--model", model, day, "-o", pred, "--force"])
     head, est = _read_table(pred)
     thead, truth = _read_table(day.with_suffix(".truth.csv"))
     for a in AXES:

@@ -308,3 +308,20 @@ def test_a_file_split_by_a_date_keeps_its_dates_and_two_runs_of_one_name_are_not
                  "out"]) == 0
     assert sorted(p.name for p in Path("out").iterdir()) == ["dated[date=20240105].pred.csv",
                                                            "dated[date=20240106].pred.csv"]
+    # a second run (other options) never replaces the first one's files without --force: refused before the work
+    first = Path("out", "dated[date=20240105].pred.csv").read_text()
+    capsys.readouterr()
+    assert main(["estimate", "--profile", "lathe.toml", "--model", "m.toml", "dated.csv", "--split-by", "date", "-o",
+                 "out", "--align", "none"]) == 1
+    assert capsys.readouterr().err == ("cncgw: error: out/dated[date=20240105].pred.csv exists (and 1 more of the 2 "
+                                       "it would write): pass --force to replace it, or -o another directory\n")
+    assert Path("out", "dated[date=20240105].pred.csv").read_text() == first
+    assert main(["estimate", "--profile", "lathe.toml", "--model", "m.toml", "dated.csv", "--split-by", "date", "-o",
+                 "out", "--align", "none", "--force"]) == 0
+    assert Path("out", "dated[date=20240105].pred.csv").read_text() != first
+    # one recording, one file: the same
+    assert main(["estimate", "--profile", "lathe.toml", "--model", "m.toml", "val.csv", "-o", "val.pred.csv"]) == 0
+    capsys.readouterr()
+    assert main(["estimate", "--profile", "lathe.toml", "--model", "m.toml", "val.csv", "-o", "val.pred.csv"]) == 1
+    assert capsys.readouterr().err == ("cncgw: error: val.pred.csv exists: pass --force to replace it, or -o another "
+                                       "file\n")

@@ -57,9 +57,52 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="a probe CSV (time, seq, x_um, y_um, z_um, sd_um): the estimate is the model updated by "
                         "the probes taken during each recording, with its 95 %% band; -o writes it with "
                         "<axis>_sd_um and <axis>_model_um columns")
+    p.add_argument("--force", action="store_true",
+                   help="replace prediction files -o would write that exist (refused without it, before any work)")
     add_recording_options(p)
     add_split_option(p)
     p.set_defaults(func=run)
+
+
+def prediction_paths(output: str, sources: list[str], *, force: bool) -> list[Path]:
+    """Where ``-o OUTPUT`` writes each recording's estimates, checked before any work.
+
+    OUTPUT itself for one recording (unless it is a directory), else ``OUTPUT/<recording>.pred.csv`` per
+    recording. Refused: two recordings that would write one file (``d1/log.csv``, ``d2/log.csv``: one would
+    replace the other), and, without ``--force``, a prediction file that exists (a second run with other
+    options silently replaced the first one's file).
+    """
+    out = Path(output)
+    if len(sources) == 1 and not out.is_dir():
+        paths = [out]
+    else:
+        if out.exists() and not out.is_dir():
+            raise GatewayError(f"{out}: expected a directory for {len(sources)} recordings")
+        files: dict[str, str] = {}  # prediction file name -> the recording written to it
+        for source in sources:
+            name = f"{recording_name(source)}.pred.csv"
+            if name in files:
+                raise UsageError(f"-o {out}: {files[name]} and {source} would both be written to {out / name}: "
+                                 "expected recordings of distinct file names (estimate them one folder at a time)")
+            files[name] = source
+        paths = [out / name for name in files]
+    there = [p for p in paths if p.is_file()]
+    if there and not force:
+        more = f" (and {len(there) - 1} more of the {len(paths)} it would write)" if len(there) > 1 else ""
+        raise GatewayError(f"{there[0]} exists{more}: pass --force to replace it, or -o another "
+                           f"{'file' if len(paths) == 1 and paths[0] == out else 'directory'}")
+    return paths
+
+
+def _write_predictions(output: str, paths: list[Path], items: list[Any], meta: dict[str, str]) -> None:
+    """Each estimate's CSV (``to_csv``) to its path from :func:`prediction_paths`.
+
+    A directory ``-o`` is made if missing; a file's folder must exist (the error says so).
+    """
+    if paths != [Path(output)]:
+        Path(output).mkdir(parents=True, exist_ok=True)
+    for path, item in zip(paths, items, strict=True):
+        path.write_text(item.to_csv({**meta, "recording": item.recording}))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -79,11 +122,12 @@ def run(args: argparse.Namespace) -> int:
     recs = read_recordings(args.recordings, profile, period_s=args.period_s, require_displacement=False)
     if args.split_by:
         recs = split_those_with(recs, args.split_by)
+    paths = prediction_paths(args.output, [r.source for r in recs], force=args.force) if args.output else []
     history = None
     if args.history:
         history = read_recordings([args.history], profile, period_s=args.period_s, require_displacement=False)[0]
     if args.probes:
-        return _run_probed(args, profile, model, model_path, recs, history)
+        return _run_probed(args, profile, model, model_path, recs, history, paths)
     ests = []
     for r in recs:
         e = estimate(model, r, initial=args.initial, gap_policy=args.gap_policy, align=args.align, history=history,
@@ -98,25 +142,8 @@ def run(args: argparse.Namespace) -> int:
                                                             "state from its first hour"))
         ests.append(e)
         history = _carried(history, r)
-    if args.output:
-        out = Path(args.output)
-        meta = {"model": str(model_path), "profile": str(profile.path)}
-        if len(ests) == 1 and not out.is_dir():
-            out.write_text(ests[0].to_csv({**meta, "recording": ests[0].recording}))
-        else:
-            if out.exists() and not out.is_dir():
-                raise GatewayError(f"{out}: expected a directory for {len(ests)} recordings")
-            files: dict[str, str] = {}  # prediction file name -> the recording written to it
-            for e in ests:
-                name = f"{recording_name(e.recording)}.pred.csv"
-                if name in files:  # one file would silently replace the other
-                    raise UsageError(f"-o {out}: {files[name]} and {e.recording} would both be written to "
-                                     f"{out / name}: expected recordings of distinct file names (estimate them one "
-                                     "folder at a time)")
-                files[name] = e.recording
-            out.mkdir(parents=True, exist_ok=True)
-            for name, e in zip(files, ests, strict=True):
-                (out / name).write_text(e.to_csv({**meta, "recording": e.recording}))
+    if paths:
+        _write_predictions(args.output, paths, ests, {"model": str(model_path), "profile": str(profile.path)})
     if args.json:
         print(metrics_json(ests))
     else:
@@ -146,7 +173,7 @@ def _carried(history: Any, rec: Any) -> Any:
 
 
 def _run_probed(args: argparse.Namespace, profile: Any, model: Any, model_path: Path, recs: list[Any],
-                history: Any) -> int:
+                history: Any, paths: list[Path]) -> int:
     """``--probes``: the model updated by the probe file's probes, per recording (see gateway.adaptive)."""
     from gateway.adaptive.offline import estimate_with_probes
     from gateway.adaptive.probes import read_probes
@@ -171,18 +198,9 @@ def _run_probed(args: argparse.Namespace, profile: Any, model: Any, model_path: 
               f"{probes[-1].time_s:.0f} s) falls within a recording ({spans}): the estimates below are the model's "
               "alone; expected probe times on the recordings' clock (seconds or ISO 8601, as their time column)",
               file=sys.stderr)
-    if args.output:
-        out = Path(args.output)
-        meta = {"model": str(model_path), "profile": str(profile.path), "probes": str(args.probes)}
-        if len(runs) == 1 and not out.is_dir():
-            out.write_text(runs[0].to_csv({**meta, "recording": runs[0].recording}))
-        else:
-            if out.exists() and not out.is_dir():
-                raise GatewayError(f"{out}: expected a directory for {len(runs)} recordings")
-            out.mkdir(parents=True, exist_ok=True)
-            for pr in runs:
-                (out / f"{Path(pr.recording).stem}.pred.csv").write_text(
-                    pr.to_csv({**meta, "recording": pr.recording}))
+    if paths:
+        _write_predictions(args.output, paths, runs, {"model": str(model_path), "profile": str(profile.path),
+                                         "probes": str(args.probes)})
     if args.json:
         print(json.dumps([{"recording": pr.recording, "probes_applied": pr.applied(), "refused": pr.refused(),
                            "probes_outside": pr.outside, "axes": fig} for pr, fig in zip(runs, figures, strict=True)],
