@@ -87,6 +87,12 @@ def split_part(source: str) -> tuple[str, str] | None:
     return (m.group(1), m.group(2)) if m else None
 
 
+def split_file(source: str) -> tuple[str, tuple[str, str] | None]:
+    """(the file, :func:`split_part`) of a source: ``file.csv[day=7]`` is ``("file.csv", ("day", "7"))``."""
+    part = split_part(source)
+    return (source.removesuffix(f"[{part[0]}={part[1]}]") if part else source), part
+
+
 def recording_name(source: str) -> str:
     """A recording's name from its source: its file's stem, with the part for a run of a split file.
 
@@ -94,8 +100,8 @@ def recording_name(source: str) -> str:
     """
     if not source:
         return "recording"
-    m = re.match(r"^(.*?)(\[[^\]]*\])$", source)
-    return Path(m.group(1)).stem + m.group(2) if m else Path(source).stem
+    file, part = split_file(source)
+    return Path(file).stem + (f"[{part[0]}={part[1]}]" if part else "")
 
 
 @dataclass(frozen=True, kw_only=True)

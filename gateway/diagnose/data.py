@@ -23,7 +23,7 @@ from gateway.model.inputs import Column, DerivedInput, evaluate_inputs, hold_mis
 from gateway.model.model import PathTF, ThermalModel
 from gateway.model.terms import FirstOrder, Term
 from gateway.prepare import MIN_PROBE_POINTS, Prepared, prepare
-from gateway.recording import Recording, split_part
+from gateway.recording import Recording, split_file, split_part
 from gateway.replay import LEAD_IN_MAX
 
 
@@ -353,8 +353,7 @@ def _distinct(source: str, group: Sequence[str]) -> str:
     """
 
     def parts(src: str) -> tuple[Path, tuple[str, str] | None]:
-        part = split_part(src)
-        file = src.removesuffix(f"[{part[0]}={part[1]}]") if part else src
+        file, part = split_file(src)
         return Path(file), part
 
     def named(src: str, depth: int) -> str:

@@ -12,7 +12,7 @@ import numpy as np
 from gateway.diagnose.api import Diagnosis, Validation
 from gateway.diagnose.refit import identification_length_s
 from gateway.diagnose.search import Term, Trial
-from gateway.recording import split_part
+from gateway.recording import split_file
 from gateway.replay import AxisFigures
 from gateway.strict_json import nan_to_none
 
@@ -256,9 +256,8 @@ def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = 
         for v in validations:
             opts = " ".join(f"--{k.replace('_', '-')} {q(val)}" for k, val in v.settings.items()
                             if k in ("initial_state", "history") and val not in ("rest",))
-            part = split_part(v.recording)
+            file, part = split_file(v.recording)
             if part:  # a run of a split file: estimate splits the file the same way, this run among the others
-                file = v.recording.removesuffix(f"[{part[0]}={part[1]}]")
                 L.append(f"- {v.label}: `{estimate_cmd} {opts + ' ' if opts else ''}--split-by {q(part[0])} {q(file)}` "
                          f"(its {part[0]} {part[1]})")
             else:
