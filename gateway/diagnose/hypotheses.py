@@ -342,8 +342,10 @@ def _preload(ctx: _Ctx) -> list[Hypothesis]:
             explanation=("The shaft and inner rings run hotter than the housing, the preload rises and the "
                          "bearing friction with it: the speed path's heat is multiplied by (1 + k dT), dT the "
                          "bearing's over-temperature, a lag of the speed's own heat. Same place as the bearing "
-                         "friction, so the same path shape."),
-            settings=settings, shared=("bearing_tau_s",)))
+                         "friction, so the same path shape. As the lag shrinks it becomes heat ~ speed^2 in the "
+                         "bearings (viscous friction), so it is named only where it predicts significantly better "
+                         "than that: where the bearing's lag shows."),
+            settings=settings, shared=("bearing_tau_s",), simpler=(f"eddy_loss:{n}",)))
     return out
 
 
