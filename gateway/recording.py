@@ -100,8 +100,8 @@ def recording_name(source: str) -> str:
     """
     if not source:
         return "recording"
-    file, part = split_file(source)
-    return Path(file).stem + (f"[{part[0]}={part[1]}]" if part else "")
+    file, _ = split_file(source)
+    return Path(file).stem + source[len(file):]
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -199,8 +199,8 @@ def _run_probed(args: argparse.Namespace, profile: Any, model: Any, model_path: 
               "alone; expected probe times on the recordings' clock (seconds or ISO 8601, as their time column)",
               file=sys.stderr)
     if paths:
-        _write_predictions(args.output, paths, runs, {"model": str(model_path), "profile": str(profile.path),
-                                         "probes": str(args.probes)})
+        meta = {"model": str(model_path), "profile": str(profile.path), "probes": str(args.probes)}
+        _write_predictions(args.output, paths, runs, meta)
     if args.json:
         print(json.dumps([{"recording": pr.recording, "probes_applied": pr.applied(), "refused": pr.refused(),
                            "probes_outside": pr.outside, "axes": fig} for pr, fig in zip(runs, figures, strict=True)],
