@@ -158,7 +158,8 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
         es = stack_experiments(stack, factors, target, extras[a])
         if progress:
             progress(f"re-identifying axis {a}")
-        sel = select_axis(es, i, active=active, seeds=[seeds[a]], input_bounds=[bounds] * len(factors))
+        sel = select_axis(es, i, active=active, seeds=[seeds[a]], input_bounds=[bounds] * len(factors),
+                          project_extra=True)
         selections[a] = sel
         fit = sel.chosen
         # the time constants are the identifier's; the gains of what is written are fitted again without the

@@ -746,14 +746,15 @@ def bic(fit: AxisFit, n_eff: float) -> float:
 def select_axis(es: ExperimentSet, axis_index: int, *, active: Sequence[bool],
                 candidates: Sequence[str] = CANDIDATES, prune: bool = True,
                 progress: Callable[[str], None] | None = None, seeds: Sequence[Sequence[Sequence[float]]] = (),
-                input_bounds: Sequence[Bounds | None] | None = None) -> AxisSelection:
+                input_bounds: Sequence[Bounds | None] | None = None, project_extra: bool = False) -> AxisSelection:
     """Fit every candidate structure on one axis, choose by :func:`bic`, then prune weak paths.
 
     ``seeds``: more starting time constants (per input) beside the bank's, e.g. an earlier model's;
-    ``input_bounds``: per input, where its time constants may go (default: the data's bounds).
+    ``input_bounds``: per input, where its time constants may go (default: the data's bounds);
+    ``project_extra``: :class:`AxisProblem`'s (the extra columns factorised once).
     """
     t0 = time.perf_counter()
-    problem = AxisProblem(es, axis_index, input_bounds=input_bounds)
+    problem = AxisProblem(es, axis_index, input_bounds=input_bounds, project_extra=project_extra)
     # a structure with as many parameters as windows fits anything (and its least squares is underdetermined)
     offsets = int(np.count_nonzero(problem._counts)) + problem.extra.shape[1]
     need = {c: sum(n_nonlinear(c) + n_linear(c) for on in active if on) + offsets + 1 for c in candidates}
