@@ -387,7 +387,8 @@ class AxisProblem:
         """Demeaned columns ``m`` less their projection on the (demeaned) extra columns."""
         if self._extra_q is None:
             return m
-        return m - self._extra_q.q(self._extra_q.qt(m))
+        once = m - self._extra_q.q(self._extra_q.qt(m))
+        return once - self._extra_q.q(self._extra_q.qt(once))
 
     def solve(self, paths: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(path gains, extra gains, then per-experiment offsets; residual; Q of the demeaned columns).
