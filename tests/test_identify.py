@@ -236,3 +236,31 @@ def test_extra_columns_projected_out_once_give_the_full_least_squares():
     fit = problem.fit(structures, thetas)
     assert fit.extra_gains.shape == (2,)
     assert fit.rss == pytest.approx(float(np.nansum(np.concatenate(fit.residuals) ** 2)), rel=1e-9)
+
+
+def test_a_column_nearly_in_the_extra_columns_span_is_projected_orthogonal_to_them():
+    """What is left of a column after projecting out the extras is orthogonal to them to rounding of what is
+    left, not of the column: one pass of classical Gram-Schmidt leaves ~1e-16 of the column, which against
+    a remainder of 1e-8 of it is a 1e-8 error in the remainder's direction (a path nearly a recording's drift)."""
+    from dataclasses import replace
+
+    from gateway.identify.joint import AxisProblem
+
+    recs = [make_recording(FIRST_ORDER_PLANT, experiment(lv, total=360), name=f"e{k}", noise_um=0.1, seed=50 + k)
+            for k, lv in enumerate(PAPER_DESIGN)]
+    es = ExperimentSet.from_prepared([prepare(r, factors=F, axes=("x", "z")) for r in recs], factors=F,
+                                     axes=("x", "z"))
+    e, m = es.n_exp, es.du.shape[2]
+    ramp = np.broadcast_to(np.linspace(0.0, 1.0, m), (e, m)) * (np.arange(e) == 1)[:, None]
+    wave = np.broadcast_to(np.sin(np.arange(m) / 40.0), (e, m))
+    es = replace(es, extra=np.stack([ramp, wave]), extra_names=("ramp", "wave"))
+    problem = AxisProblem(es, 1, project_extra=True)
+    basis = problem._extra_q
+    assert basis is not None
+    rng = np.random.default_rng(3)
+    inside = basis.q(np.array([[0.6], [0.8]]))  # a unit column in the extras' span
+    small = problem.demean(rng.standard_normal((problem.n, 1)))
+    column = inside + 1e-8 * small / np.linalg.norm(small)
+    left = problem.project_extra(column)
+    assert np.linalg.norm(left) == pytest.approx(1e-8, rel=0.5)  # the part outside the span, about as made
+    assert np.linalg.norm(basis.qt(left)) < 1e-12 * np.linalg.norm(left)
