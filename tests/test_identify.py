@@ -208,8 +208,9 @@ def test_a_second_order_at_the_fast_time_constant_floor_loads_again():
         assert model_problems(model) == [], slow
 
 
-def test_extra_columns_projected_out_once_give_the_full_least_squares():
-    """Gains, extra gains, offsets and residual of the projected solve equal one least squares on everything."""
+def _projected_problem():
+    """Axis z of the paper's nine experiments with two extra columns (one experiment's drift, a wave common to
+    all), the extras projected out once."""
     from dataclasses import replace
 
     from gateway.identify.joint import AxisProblem
@@ -222,7 +223,12 @@ def test_extra_columns_projected_out_once_give_the_full_least_squares():
     ramp = np.broadcast_to(np.linspace(0.0, 1.0, m), (e, m)) * (np.arange(e) == 1)[:, None]  # one experiment's drift
     wave = np.broadcast_to(np.sin(np.arange(m) / 40.0), (e, m))
     es = replace(es, extra=np.stack([ramp, wave]), extra_names=("ramp", "wave"))
-    problem = AxisProblem(es, 1, project_extra=True)
+    return AxisProblem(es, 1, project_extra=True)
+
+
+def test_extra_columns_projected_out_once_give_the_full_least_squares():
+    """Gains, extra gains, offsets and residual of the projected solve equal one least squares on everything."""
+    problem = _projected_problem()
     structures = ["first_order"] * 3 + ["zero"] * 2
     thetas = [[np.log(2400.0)], [np.log(1500.0)], [np.log(900.0)], [], []]
     paths = np.column_stack([c for j, s in enumerate(structures) if s != "zero"
@@ -242,19 +248,7 @@ def test_a_column_nearly_in_the_extra_columns_span_is_projected_orthogonal_to_th
     """What is left of a column after projecting out the extras is orthogonal to them to rounding of what is
     left, not of the column: one pass of classical Gram-Schmidt leaves ~1e-16 of the column, which against
     a remainder of 1e-8 of it is a 1e-8 error in the remainder's direction (a path nearly a recording's drift)."""
-    from dataclasses import replace
-
-    from gateway.identify.joint import AxisProblem
-
-    recs = [make_recording(FIRST_ORDER_PLANT, experiment(lv, total=360), name=f"e{k}", noise_um=0.1, seed=50 + k)
-            for k, lv in enumerate(PAPER_DESIGN)]
-    es = ExperimentSet.from_prepared([prepare(r, factors=F, axes=("x", "z")) for r in recs], factors=F,
-                                     axes=("x", "z"))
-    e, m = es.n_exp, es.du.shape[2]
-    ramp = np.broadcast_to(np.linspace(0.0, 1.0, m), (e, m)) * (np.arange(e) == 1)[:, None]
-    wave = np.broadcast_to(np.sin(np.arange(m) / 40.0), (e, m))
-    es = replace(es, extra=np.stack([ramp, wave]), extra_names=("ramp", "wave"))
-    problem = AxisProblem(es, 1, project_extra=True)
+    problem = _projected_problem()
     basis = problem._extra_q
     assert basis is not None
     rng = np.random.default_rng(3)
