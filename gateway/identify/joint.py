@@ -393,6 +393,7 @@ class AxisProblem:
         # span with a rounding error large against what remains of it; a second pass is enough ("twice is
         # enough", Kahan and Parlett). Once only, diagnosis's re-identification landed in a worse minimum in
         # 6 of the 6 bench cases where it landed elsewhere (fresh-day RMS up 0.06-0.34 um); twice, in 2 of 4
+        # (and better in the other 2)
         once = m - self._extra_q.q(self._extra_q.qt(m))
         return once - self._extra_q.q(self._extra_q.qt(once))
 
