@@ -9,7 +9,7 @@ experiments and four production days, the effect acting in all of them), the rec
 (cached like bench/diagnose.py's), the baseline model is identified once with the baseline revision (a
 newer tree reads an older model file, not always the reverse), and then
 ``cncgw diagnose --model baseline exp*.csv day*.csv`` runs in a fresh process per source tree: the baseline
-revision (``git archive REV``, default ``main``) and this working tree, one after the other, each holding
+revision (``git archive REV``, default ``main``) and this working tree, taking turns (``--repeat``), each holding
 BLAS to one thread. The CPU seconds of that process during the diagnosis (``time.process_time``) are
 printed with their ratio, and what each diagnosis decided is compared: the model written, the accepted
 terms, and the held-out figures of every candidate (pooled squared error, RMS per axis) as relative
@@ -109,7 +109,8 @@ def main() -> int:
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "cncgw-bench" / "diagnose"),
                     help="recordings cache (shared with bench/diagnose.py)")
     ap.add_argument("--keep", help="keep the models and both diagnoses' reports here")
-    ap.add_argument("--repeat", type=int, default=1, help="time each tree N times, keep the least CPU (default 1)")
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="time each tree N times, taking turns, keep the least CPU (default 1)")
     args = ap.parse_args()
     cases = []
     for item in args.cases.split(","):
@@ -134,13 +135,19 @@ def main() -> int:
             if not model.is_file():  # a kept one is reused: both trees diagnose the same model
                 # identified by the baseline: a newer tree reads an older model file, not always the reverse
                 timed_cli(old_tree, ["identify", "--profile", str(PROFILE), *map(str, exps), "-o", str(model)])
-            cpu, dec = {}, {}
-            for key, tree in trees.items():
-                out = case_dir / key
-                diag_args = ["--profile", str(PROFILE), "--model", str(model), *map(str, exps), *map(str, days),
-                             "-o", str(out), "--force"]
-                cpu[key] = min(timed_cli(tree, ["diagnose", *diag_args]) for _ in range(max(1, args.repeat)))
-                dec[key] = decisions(out)
+            cpu: dict[str, float] = {key: float("inf") for key in trees}
+            dec = {}
+            # the trees take turns (baseline, this, baseline, this, ...): this PC's speed drifts over minutes
+            # (the same diagnosis measured 40-72 s within a day), and N runs of one then N of the other would
+            # put a drift into the ratio
+            for _ in range(max(1, args.repeat)):
+                for key, tree in trees.items():
+                    out = case_dir / key
+                    diag_args = ["--profile", str(PROFILE), "--model", str(model), *map(str, exps),
+                                 *map(str, days), "-o", str(out), "--force"]
+                    cpu[key] = min(cpu[key], timed_cli(tree, ["diagnose", *diag_args]))
+            for key in trees:
+                dec[key] = decisions(case_dir / key)
                 totals[key] += cpu[key]
             same, worst, diffs = compare_decisions(dec["baseline"], dec["this"])
             print(f"{effect + ' v' + str(variant):24s} {cpu['baseline']:9.1f} {cpu['this']:9.1f} "
