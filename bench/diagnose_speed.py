@@ -135,19 +135,17 @@ def main() -> int:
             if not model.is_file():  # a kept one is reused: both trees diagnose the same model
                 # identified by the baseline: a newer tree reads an older model file, not always the reverse
                 timed_cli(old_tree, ["identify", "--profile", str(PROFILE), *map(str, exps), "-o", str(model)])
-            cpu: dict[str, float] = {key: float("inf") for key in trees}
-            dec = {}
+            diag_args = ["diagnose", "--profile", str(PROFILE), "--model", str(model), *map(str, exps),
+                         *map(str, days), "--force", "-o"]
+            cpu = {key: float("inf") for key in trees}
             # the trees take turns (baseline, this, baseline, this, ...): this PC's speed drifts over minutes
             # (the same diagnosis measured 40-72 s within a day), and N runs of one then N of the other would
             # put a drift into the ratio
             for _ in range(max(1, args.repeat)):
                 for key, tree in trees.items():
-                    out = case_dir / key
-                    diag_args = ["--profile", str(PROFILE), "--model", str(model), *map(str, exps),
-                                 *map(str, days), "-o", str(out), "--force"]
-                    cpu[key] = min(cpu[key], timed_cli(tree, ["diagnose", *diag_args]))
+                    cpu[key] = min(cpu[key], timed_cli(tree, [*diag_args, str(case_dir / key)]))
+            dec = {key: decisions(case_dir / key) for key in trees}
             for key in trees:
-                dec[key] = decisions(case_dir / key)
                 totals[key] += cpu[key]
             same, worst, diffs = compare_decisions(dec["baseline"], dec["this"])
             print(f"{effect + ' v' + str(variant):24s} {cpu['baseline']:9.1f} {cpu['this']:9.1f} "
