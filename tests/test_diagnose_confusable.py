@@ -5,7 +5,9 @@ spindle's current is nearly all of it (the feed axes' currents are small and fol
 slower mode on the spindle current's path does what the cabinet would, and no fit can tell them apart:
 diagnosis says so, and what would tell them apart. Once the feed axes run hard for hours with the spindle at
 rest, the cabinet's input is no longer the spindle's, and nothing is said. Eddy loss (speed^2) stays
-distinguishable from the speed on the same days. Fast (under a second).
+distinguishable from the speed on the same days. A recorded thermometer of the cabinet's air, which on those
+days only follows the spindle current late, is said to be indistinguishable too; a room thermometer that
+varies for reasons of its own is not. Fast (under a second).
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from gateway.diagnose.confusable import CONFUSED_SHARE, confusions, unexplained_share
-from gateway.diagnose.data import build_stack
+from gateway.diagnose.data import build_stack, lag
 from gateway.diagnose.hypotheses import FactorInfo, catalogue
 from gateway.model import FirstOrder, PathTF, ThermalModel
 from gateway.recording import Recording
@@ -58,6 +60,25 @@ def _axes_alone() -> Recording:
     return _recording("exp-feed-x", np.zeros(720), np.zeros(720), x_i_sq, seed=7)
 
 
+def _with_column(rec: Recording, name: str, values: np.ndarray) -> Recording:
+    return Recording(source=rec.source, period_s=rec.period_s, time_s=rec.time_s, present=rec.present,
+                     factors=rec.factors, displacement=rec.displacement, extras={name: values})
+
+
+def _cabinet_thermometer(rec: Recording) -> Recording:
+    """The cabinet air: 25 C plus its amplifiers' heat through a 40 min lag, read to 0.05 C."""
+    stack = build_stack(MODEL, [rec])
+    heat = sum(stack.du[f] for f in ("spindle_i1_sq", "x_i_sq", "y_i_sq"))
+    noise = 0.05 * np.random.default_rng(11).standard_normal(len(heat))
+    return _with_column(rec, "cabinet_c", 25.0 + 0.05 * stack.response(heat, lag(2400.0)) + noise)
+
+
+def _room_thermometer(rec: Recording, day: int) -> Recording:
+    """The hall: a daily cycle and that day's weather, whatever the machine does."""
+    h = rec.time_s / 3600.0
+    return _with_column(rec, "room_c", 20.0 + 2.0 * np.sin(2 * np.pi * (h - 9.0) / 24.0) + 0.3 * day + 0.05 * h)
+
+
 def _confused(recordings: list[Recording]) -> dict[str, object]:
     stack = build_stack(MODEL, recordings)
     return {c.key: c for c in confusions(stack, catalogue(stack, MODEL, INFOS))}
@@ -90,3 +111,20 @@ def test_unexplained_share():
     assert unexplained_share(3.0 * gap, np.sin(t)) < 1e-12
     assert unexplained_share(np.cos(t), gap) > 0.5
     assert unexplained_share(np.full_like(t, np.nan), np.sin(t)) == 1.0
+
+
+def test_a_recorded_thermometer_that_only_follows_the_spindle_current_is_said_indistinguishable():
+    found = _confused([_cabinet_thermometer(_day(d)) for d in range(1, 5)])
+    assert set(found) == {"cabinet", "recorded_signal:cabinet_c"}, found
+    c = found["recorded_signal:cabinet_c"]
+    assert c.factor == "spindle_i1_sq"
+    assert c.unexplained < CONFUSED_SHARE
+    assert c.factor_lag_s > 0.0  # a temperature follows its heat late: the factor needed a further lag
+    assert "recorded column cabinet_c" in c.line()
+    assert "spindle_i1_sq through another" in c.line()
+    assert "cannot name it" in c.line()
+
+
+def test_a_room_thermometer_that_varies_on_its_own_is_not_said_indistinguishable():
+    found = _confused([_room_thermometer(_day(d), d) for d in range(1, 5)])
+    assert set(found) == {"cabinet"}, found
