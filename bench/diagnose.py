@@ -707,15 +707,21 @@ def summary(verdicts: list[Verdict], *, protocol: str) -> list[str]:
                f"{len(gain_ok)}/{len(need)}  (aim: all)")
     out.append(f"  the right family named, or among the ones the report says it cannot tell apart from the one named: "
                f"{sum(bool(v.in_set) for v in need)}/{len(need)}")
+    def said(v: Verdict) -> bool:  # the report says these recordings cannot name its family
+        return any(is_family(n.split(" ~ ")[0], EFFECTS[v.row.effect].families) for n in v.row.indistinguishable)
+
+    missed = [v for v in need if not v.right and not v.in_set]
+    out.append(f"  not named: {len(missed)}; of them said indistinguishable from a factor's path (the signals "
+               f"cannot name it) {sum(said(v) for v in missed)}; the rest: "
+               + (", ".join(v.row.label for v in missed if not said(v)) or "none"))
     for name in dict.fromkeys(v.row.effect for v in effects):
         vs = [v for v in effects if v.row.effect == name]
         g = [100 * min(v.gains.get(a, math.nan) for a in v.moved) for v in vs if v.moved]
-        said = sum(any(is_family(n.split(" ~ ")[0], EFFECTS[name].families) for n in v.row.indistinguishable)
-                   for v in vs)
+        n_said = sum(said(v) for v in vs)
         out.append(f"  {name:<20} moves an axis in {sum(bool(v.moved) for v in vs)}/{len(vs)}, named right "
                    f"{sum(bool(v.right) for v in vs)}/{len(vs)} (first {sum(bool(v.first) for v in vs)}), "
                    f"wrong names {sum(bool(v.wrong) for v in vs)}/{len(vs)}"
-                   + (f", said indistinguishable from a factor's path {said}/{len(vs)}" if said else "")
+                   + (f", said indistinguishable from a factor's path {n_said}/{len(vs)}" if n_said else "")
                    + (f", worst gain on a moved axis median {np.median(g):+.0f} %" if g else ""))
     for v in need:
         if not v.row.accepted and v.row.closest:  # nothing named: what the report says would decide it

@@ -132,3 +132,22 @@ def test_more_production_days_keep_the_first_four_and_move_the_fresh_day_after_t
     starts = {n: parse_scenario_text(t, source=n).start_time_s for n, t in {**seven.days, **seven.fresh}.items()}
     assert starts["fresh"] > max(starts[f"day{d}"] for d in range(1, 8))  # nothing fitted comes after it
     assert starts["fresh"] - starts["day7"] == 2 * 86400  # two dates after the last, as with four days
+
+
+def test_the_summary_separates_what_the_signals_cannot_name_from_the_rest(bench):
+    fresh = {"x": 0.2, "y": 0.5, "z": 2.0}
+    none = bench.Row(protocol="new", effect="none", variant=1, before=fresh, after=fresh)
+    moved = {"x": 0.2, "y": 0.5, "z": 6.0}
+    cabinet = bench.Row(protocol="new", effect="cabinet", variant=1, before=moved, after=fresh,
+                        indistinguishable=["cabinet ~ spindle_i1_sq"])
+    slow = bench.Row(protocol="new", effect="slow mode", variant=1, before=moved, after=fresh,
+                     accepted=["eddy_loss:spindle_speed on z"])
+    named = bench.Row(protocol="new", effect="slow mode", variant=2, before=moved, after=fresh,
+                      accepted=["slow_mode:spindle_speed on z"])
+    refs = {1: none, 2: dataclasses.replace(none, variant=2)}
+    verdicts = [bench.judge(r, refs[r.variant]) for r in (none, refs[2], cabinet, slow, named)]
+    lines = bench.summary(verdicts, protocol="new")
+    assert "named (right family) 1/3" in lines[0]
+    missed = [ln for ln in lines if ln.strip().startswith("not named:")]
+    assert missed == ["  not named: 2; of them said indistinguishable from a factor's path (the signals cannot name "
+                      "it) 1; the rest: slow mode v1"]
