@@ -21,7 +21,7 @@ from gateway.diagnose.explain import explain, held_corrections
 from gateway.diagnose.hypotheses import Hypothesis, Setting
 from gateway.diagnose.refit import path_corrections
 from gateway.diagnose.report import to_json
-from gateway.diagnose.search import AxisEvidence, Options, Trial, _decide, _occam, search
+from gateway.diagnose.search import AxisEvidence, Options, Trial, _decide, _judge, _occam, search
 from gateway.diagnose.select import GridFit
 from gateway.identify import identify
 from gateway.model import FirstOrder, PathTF
@@ -178,6 +178,31 @@ def test_a_mechanism_the_blocks_do_not_tell_apart_from_the_one_taken_is_its_riva
     assert "not told apart" in alike.verdict, alike.verdict
     assert "significantly better (p = " in worse.verdict, worse.verdict
     assert "not told apart" in generic.verdict  # said so, but a path's structure is not a rival name
+
+
+def test_a_mechanism_short_only_of_the_family_wise_correction_is_a_rival_when_the_blocks_do_not_tell_them_apart():
+    # bench viscous drag v6: preload taken at Holm p = 0.019, speed^2 not at 0.028 (alpha 0.025), both 73 % of z's
+    without = [10.0 + 0.1 * k for k in range(12)]
+    held = [0.3 * w for w in without]
+    o = Options()
+    taken = _trial("preload", held, without)
+    near = _trial("eddy", [h + (0.25 if k % 2 else -0.2) for k, h in enumerate(held)], without)
+    near.p, near.p_holm = 0.001, 0.06  # significant alone, not after the correction for the hypotheses tried
+    chance = _trial("chiller", [h + (0.25 if k % 2 else -0.2) for k, h in enumerate(held)], without)
+    chance.p, chance.p_holm = 0.07, 1.0  # not even significant alone
+    worse = _trial("cabinet", [0.6 * w for w in without], without)
+    worse.p, worse.p_holm = 0.001, 0.06
+    for t in (near, chance, worse):
+        t.verdict = _judge(t, o)
+        assert t.verdict.startswith("not significant"), t.verdict
+        assert not t.axes  # it joins no axis: nothing of it is written
+    assert near.short_of_holm == ("z",)
+    assert chance.short_of_holm == ()
+    _decide(taken, [taken], o, near=[t for t in (near, chance, worse) if t.short_of_holm])
+    assert [r.hypothesis.key for r in taken.rivals] == ["eddy"]
+    assert "significant alone" in near.verdict, near.verdict
+    assert "not told apart" in near.verdict, near.verdict
+    assert "not told apart" not in worse.verdict  # every block worse than the one taken: told apart
 
 
 def test_when_nothing_explains_the_change_the_report_says_how_near_the_closest_mechanism_came(monkeypatch):

@@ -386,10 +386,13 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
     taken = {id(t) for t in d.result.accepted}
     for t in _named(d.result, ex):
         if t.rivals:
-            out.append(f"{t.hypothesis.title}: these recordings do not tell it apart from "
-                       f"{'; '.join(r.hypothesis.title for r in t.rivals[:3])}: they pass too and predict the held-out "
-                       "blocks not significantly worse; it was taken for fewer parameters, for passing with the paths "
-                       "held, or for the larger held-out gain, so it is named with them, not alone")
+            names = [r.hypothesis.title + (" (significant alone, not after the correction for the hypotheses "
+                                           "tried)" if r.short_of_holm else "") for r in t.rivals[:3]]
+            out.append(f"{t.hypothesis.title}: these recordings do not tell it apart from {'; '.join(names)}: "
+                       f"{'they pass too and ' if not any(r.short_of_holm for r in t.rivals[:3]) else ''}"
+                       "they predict the held-out blocks not significantly worse; it was taken for fewer parameters, "
+                       "for passing with the paths held, for the larger held-out gain or for passing the "
+                       "correction, so it is named with them, not alone")
         trials = ex.result.trials if ex is not None and ex.result and id(t) not in taken else d.result.trials
         rivals = {id(r) for r in t.rivals}
         others = [r.hypothesis.title for r in trials if r.round == t.round and r is not t and id(r) not in rivals
