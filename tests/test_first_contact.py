@@ -56,13 +56,21 @@ def test_diagnose_without_matplotlib_writes_its_report_and_model(random_spindle,
 
 # ------------------------------------------------------------------------------------- diagnose --split-by ---
 def _two_days(rec, path):
-    """``rec`` twice, one after the other, with a day column: a logger's file of several days."""
+    """``rec`` twice, one after the other, with a day column: a logger's file of several days.
+
+    Each day's displacement is moved (0.2 and 0.3 um): two runs, not one given three times (refused).
+    """
     lines = [ln for ln in rec.read_text().splitlines() if not ln.startswith("#")]
+    um = [k for k, name in enumerate(lines[0].split(",")) if name.endswith("_um")]
     rows = [ln.split(",") for ln in lines[1:]]
     last = float(rows[-1][0])
+
+    def moved(r, by):
+        return [f"{float(v) + by:g}" if k in um and v else v for k, v in enumerate(r)]
+
     out = [lines[0] + ",day"]
-    out += [",".join(r) + ",1" for r in rows]
-    out += [",".join([f"{float(r[0]) + last:g}", *r[1:]]) + ",2" for r in rows]
+    out += [",".join(moved(r, 0.2)) + ",1" for r in rows]
+    out += [",".join([f"{float(r[0]) + last:g}", *moved(r, 0.3)[1:]]) + ",2" for r in rows]
     path.write_text("\n".join(out) + "\n")
     return path
 
@@ -96,6 +104,50 @@ def test_split_by_a_column_no_recording_has_is_a_usage_error_naming_the_files(ra
     assert 'no recording has a numeric column "shift"' in err
     assert f"{days}: day" in err
     assert f"{random_spindle}: none" in err
+
+
+# ------------------------------------------------------------------------------ diagnose: what it refuses ---
+def test_a_recording_given_twice_is_refused_by_its_content(random_spindle, tmp_path, capsys):
+    copy = tmp_path / "copy.csv"
+    copy.write_bytes(random_spindle.read_bytes())
+    for twice, said in (([random_spindle, random_spindle], "given twice"),
+                        ([random_spindle, copy], f"the same data as {random_spindle}")):
+        assert main(["diagnose", "--profile", "sim-vmc", *map(str, twice), "--no-reidentify"]) == 2
+        err = capsys.readouterr().err
+        assert f"{twice[1]}: {said}" in err
+        assert "doubles its evidence" in err
+
+
+def test_use_signal_of_a_column_no_recording_has_is_refused_naming_the_columns_there(random_spindle, capsys):
+    assert main(["diagnose", "--profile", "sim-vmc", str(random_spindle), "--use-signal", "roomc"]) == 2
+    err = capsys.readouterr().err
+    assert "--use-signal roomc: no recording has a column 'roomc'" in err
+    assert "(recorded columns: " in err
+
+
+@pytest.mark.parametrize(("blocks", "said"), [("1", "expected an integer >= 3 (held-out blocks of time), got '1'"),
+                                              ("abc", "expected an integer >= 3 (held-out blocks of time), got 'abc'"),
+                                              ("100000", "--blocks 100000: these recordings hold 6 h, so the blocks "
+                                                         "would be 6e-05 h long")])
+def test_held_out_blocks_too_few_or_shorter_than_an_hour_are_refused(random_spindle, blocks, said, capsys):
+    try:
+        code = main(["diagnose", "--profile", "sim-vmc", str(random_spindle), "--blocks", blocks])
+    except SystemExit as e:  # argparse's own refusal of the value
+        code = e.code
+    assert code == 2
+    err = capsys.readouterr().err
+    assert said in err
+
+
+def test_a_model_of_another_machine_is_diagnosed_with_a_warning_the_report_keeps(random_spindle, capsys):
+    from gateway import BUNDLED
+
+    assert main(["diagnose", "--profile", "paper-vm40iii", "--model", str(BUNDLED / "sim-vmc.model.toml"),
+                 str(random_spindle), "--no-reidentify", "--json"]) == 0
+    captured = capsys.readouterr()
+    said = 'the model names machine "sim-vmc", this profile is machine "paper-vm40iii"'
+    assert f"cncgw: warning: {BUNDLED / 'sim-vmc.model.toml'}: {said}" in captured.err
+    assert any(said in c for c in json.loads(captured.out)["conclusions"])
 
 
 # ---------------------------------------------------------------------------------- wrong units, bad files ---

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import re
+import sys
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -33,6 +34,19 @@ def positive_float(text: str) -> float:
     if not value > 0 or value == float("inf"):
         raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
     return value
+
+
+def warn_other_machine(model: ThermalModel, model_path: Path, profile: Profile, what: str) -> str:
+    """Warn (stderr) when the model names another machine than the profile; return the warning ("" if none).
+
+    Offline it may be what the user wants (a twin machine); ``cncgw run`` refuses it.
+    """
+    if not model.machine or model.machine == profile.name:
+        return ""
+    text = (f'{model_path}: the model names machine "{model.machine}", this profile is machine "{profile.name}": '
+            f"{what} (`cncgw run` refuses it)")
+    print(f"cncgw: warning: {text}", file=sys.stderr)
+    return text
 
 
 def positive_int(text: str) -> int:

@@ -14,9 +14,9 @@ from gateway.commands._common import (
     check_output,
     load_model_for,
     positive_float,
-    positive_int,
     read_recordings,
     split_those_with,
+    warn_other_machine,
 )
 from gateway.errors import GatewayError, UsageError
 from gateway.profile import load_profile
@@ -26,6 +26,21 @@ def _share(text: str) -> float:
     value = positive_float(text)
     if value >= 1:
         raise argparse.ArgumentTypeError(f"expected a number between 0 and 1, got {text!r}")
+    return value
+
+
+#: held-out blocks: a signed-rank test needs a few; a block shorter than an hour is no independent sample of a
+#: thermal error (batch means: errors are correlated over hours)
+MIN_BLOCKS, DEFAULT_BLOCKS, MIN_BLOCK_H = 3, 16, 1.0
+
+
+def _blocks(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < MIN_BLOCKS:
+        raise argparse.ArgumentTypeError(f"expected an integer >= {MIN_BLOCKS} (held-out blocks of time), got {text!r}")
     return value
 
 
@@ -56,7 +71,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "displacement of any axis (default 0.02)")
     p.add_argument("--min-gain", type=_share, default=0.1, metavar="SHARE",
                    help="relevance: share of an axis's held-out squared error it must remove (default 0.1)")
-    p.add_argument("--blocks", type=positive_int, default=16, metavar="K", help="held-out blocks of time (default 16)")
+    p.add_argument("--blocks", type=_blocks, default=None, metavar="K",
+                   help=f"held-out blocks of time (default {DEFAULT_BLOCKS}; at least {MIN_BLOCKS}; more than "
+                        f"{DEFAULT_BLOCKS} only where each spans at least {MIN_BLOCK_H:g} h)")
     add_split_option(p, also=", e.g. the experiments,")
     p.add_argument("--history", metavar="RECORDING",
                    help="a recording that ran just before the first --validate recording: it starts in the state "
@@ -85,10 +102,10 @@ def run(args: argparse.Namespace) -> int:
     profile = load_profile(args.profile)
     model, model_path = load_model_for(profile, args.model)
     recs = read_recordings(args.recordings, profile, period_s=args.period_s, require_displacement=False)
-    if args.blocks < 3:
-        raise UsageError(f"--blocks: expected at least 3 held-out blocks, got {args.blocks}")
-    options = Options(alpha=args.alpha, min_effect_share=args.min_effect, min_gain=args.min_gain, blocks=args.blocks,
-                      reidentify=not args.no_reidentify, use_signals=tuple(args.use_signal))
+    hedges = []
+    other = warn_other_machine(model, model_path, profile, "the model written keeps that machine's name")
+    if other:
+        hedges.append(other)
     out = Path(args.output) if args.output else None
     if out is not None and (out / "report.md").exists() and not args.force:
         raise GatewayError(f"{out}/report.md exists: pass --force to overwrite it")
@@ -96,6 +113,11 @@ def run(args: argparse.Namespace) -> int:
         if args.validate else []
     if args.split_by:
         recs, vrecs = split_those_with(recs, args.split_by, vrecs), split_those_with(vrecs, args.split_by, recs)
+    _check_distinct(recs, model.factors)
+    _check_signals(args.use_signal, recs)
+    options = Options(alpha=args.alpha, min_effect_share=args.min_effect, min_gain=args.min_gain,
+                      blocks=_check_blocks(args.blocks, recs), reidentify=not args.no_reidentify,
+                      use_signals=tuple(args.use_signal))
     # a validation recording that is also diagnosed would be scored on data the model was fitted on
     fitted = {r.fingerprint(model.factors): r.source for r in recs}
     for v in vrecs:
@@ -107,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
     if args.history:
         history = read_recordings([args.history], profile, period_s=args.period_s, require_displacement=False)[0]
     d = diagnose(model, recs, factors=factor_infos(profile), options=options, gap_policy=args.gap_policy)
-    hedges = []
+    d.conclusions += hedges
     if args.period_s:
         hedges.append(f"rows were taken as {args.period_s:g} s apart (--period-s): every time constant and dead time "
                       "found scales with the true period")
@@ -150,6 +172,45 @@ def run(args: argparse.Namespace) -> int:
     for path in written.values():
         print(f"wrote {path}")
     return 0
+
+
+def _check_distinct(recs: list, factors) -> None:
+    """Refuse a recording given twice (by content: a copy or another path to it counts too)."""
+    seen: dict[str, str] = {}
+    for r in recs:
+        fp = r.fingerprint(factors)
+        if fp in seen:
+            what = "given twice" if seen[fp] == r.source else (
+                f"the same data as {seen[fp]} (the same factors and displacement, whatever the file's name)")
+            raise UsageError(f"{r.source}: {what}: a recording given twice counts twice in the held-out blocks and "
+                             "doubles its evidence; give each recording once")
+        seen[fp] = r.source
+
+
+def _check_signals(columns: list[str], recs: list) -> None:
+    """Refuse ``--use-signal`` of a column no recording has, listing the columns they have."""
+    have = sorted({c for r in recs for c in r.extras})
+    for c in columns:
+        if not any(c in r.extras for r in recs):
+            raise UsageError(f"--use-signal {c}: no recording has a column {c!r} beside the profile's factors and "
+                             f"displacement (recorded columns: {', '.join(have) or 'none'})")
+
+
+def _check_blocks(given: int | None, recs: list) -> int:
+    """The held-out blocks: the default, or as given when each spans at least MIN_BLOCK_H.
+
+    No more blocks than the default are always allowed: short recordings get the default's shorter blocks, as
+    they always did.
+    """
+    if given is None:
+        return DEFAULT_BLOCKS
+    hours = sum(r.duration_s for r in recs) / 3600.0
+    most = max(DEFAULT_BLOCKS, int(hours // MIN_BLOCK_H))
+    if given > most:
+        raise UsageError(f"--blocks {given}: these recordings hold {hours:.3g} h, so the blocks would be "
+                         f"{hours / given:.2g} h long; a held-out block must span at least {MIN_BLOCK_H:g} h (thermal "
+                         f"errors are correlated over hours): at most {most} here")
+    return given
 
 
 def _recording_options(args: argparse.Namespace) -> str:

@@ -18,6 +18,7 @@ from gateway.commands._common import (
     read_recordings,
     refuse_writing_over_inputs,
     split_those_with,
+    warn_other_machine,
 )
 from gateway.errors import GatewayError, UsageError
 from gateway.prepare import INITIAL_CHOICES
@@ -114,11 +115,7 @@ def run(args: argparse.Namespace) -> int:
     check_output("--plot", args.plot)
     profile = load_profile(args.profile)
     model, model_path = load_model_for(profile, args.model)
-    if model.machine and model.machine != profile.name:
-        # offline it may be what the user wants (a twin machine); `cncgw run` refuses it
-        print(f'cncgw: warning: {model_path}: the model names machine "{model.machine}", this profile is machine '
-              f'"{profile.name}": these are the figures of another machine\'s model (`cncgw run` refuses it)',
-              file=sys.stderr)
+    warn_other_machine(model, model_path, profile, "these are the figures of another machine's model")
     recs = read_recordings(args.recordings, profile, period_s=args.period_s, require_displacement=False)
     if args.split_by:
         recs = split_those_with(recs, args.split_by)
