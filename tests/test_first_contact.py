@@ -106,6 +106,29 @@ def test_split_by_a_column_no_recording_has_is_a_usage_error_naming_the_files(ra
     assert f"{random_spindle}: none" in err
 
 
+def test_files_of_one_name_in_two_folders_are_told_apart_wherever_the_report_names_a_recording(random_spindle,
+                                                                                               tmp_path, capsys):
+    lines = [ln for ln in random_spindle.read_text().splitlines() if not ln.startswith("#")]
+    um = [k for k, name in enumerate(lines[0].split(",")) if name.endswith("_um")]
+    for day, drift in (("d1", 4.0), ("d2", -3.0)):  # a sensor drifting by some um over the run: windows to locate
+        rows = [[f"{float(v) + drift * i / len(lines):g}" if k in um and v else v for k, v in enumerate(ln.split(","))]
+                for i, ln in enumerate(lines[1:])]
+        (tmp_path / day).mkdir()
+        (tmp_path / day / "log.csv").write_text("\n".join([lines[0], *(",".join(r) for r in rows)]) + "\n")
+    out = tmp_path / "diag"
+    assert main(["diagnose", "--profile", "sim-vmc", str(tmp_path / "d1" / "log.csv"), str(tmp_path / "d2" / "log.csv"),
+                 "--no-reidentify", "-o", str(out), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["labels"] == ["d1/log", "d2/log"]
+    named = {w["recording"] for f in doc["findings"].values() for w in f["windows"]}
+    named |= {c["recording"] for f in doc["findings"].values() for c in f["change_points"]}
+    assert named, "nothing located: the test shows nothing"
+    assert named <= {"d1/log", "d2/log"}, named
+    from gateway.model import load_model
+
+    assert load_model(out / "sim-vmc.diagnosed.model.toml").info["diagnosis"]["recordings"] == ["d1/log", "d2/log"]
+
+
 # ------------------------------------------------------------------------------ diagnose: what it refuses ---
 def test_a_recording_given_twice_is_refused_by_its_content(random_spindle, tmp_path, capsys):
     copy = tmp_path / "copy.csv"

@@ -200,7 +200,7 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
     result = {"reidentified": results.get("refit"), "explained": explanation.result if explanation else None
               }.get(comparison.chosen) or results["frozen"]
     on = [(t, f"{t.hypothesis.key} on {', '.join(t.axes)}") for t in result.accepted]
-    record = {"cncgw_version": __version__, "recordings": list(stack.names), "written": comparison.chosen,
+    record = {"cncgw_version": __version__, "recordings": list(stack.labels), "written": comparison.chosen,
               "accepted": [text for t, text in on if not t.hypothesis.artefact] if comparison.chosen != "identified"
               else [],
               "explained": explanation.names if explanation is not None else [],

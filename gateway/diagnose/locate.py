@@ -132,7 +132,7 @@ def located_windows(stack: Stack, residual: np.ndarray, noise: Noise, *, min_len
             peak = float(vals[np.nanargmax(np.abs(vals))]) if np.isfinite(vals).any() else 0.0
             active = tuple(f for f, m in act.items() if m[sl].mean() > 0.5)
             t0 = stack.time_s[a]
-            out.append(Window(recording=stack.names[r_i], start_h=(stack.time_s[a + s] - t0) / 3600.0,
+            out.append(Window(recording=stack.labels[r_i], start_h=(stack.time_s[a + s] - t0) / 3600.0,
                               end_h=(stack.time_s[a + e - 1] - t0) / 3600.0, start=a + s, stop=a + e,
                               peak_um=peak, running_share=float(any_active[sl].mean()), active=active))
     out.sort(key=lambda w: -abs(w.peak_um))
@@ -208,7 +208,7 @@ def find_steps(stack: Stack, axis: int, residual: np.ndarray, noise: Noise, *, w
                 continue
             level = float(np.nanmedian(after) - np.nanmedian(before))
             if abs(level) >= least and np.sign(level) == np.sign(d) and abs(d) >= sharpness * abs(level):
-                found.append(Step(axis=stack.axes[axis], index=a + k, recording=stack.names[stack.rec_index()[a]],
+                found.append(Step(axis=stack.axes[axis], index=a + k, recording=stack.labels[stack.rec_index()[a]],
                                   time_h=(stack.time_s[a + k] - stack.time_s[a]) / 3600.0, size_um=level))
                 k += width
             else:
@@ -257,7 +257,7 @@ def change_points(stack: Stack, residual: np.ndarray, *, min_segment: int = 60, 
             sse_total -= best[0]
         for i in range(1, len(cuts) - 1):
             c = cuts[i]
-            out.append(ChangePoint(recording=stack.names[r_i], time_h=float(t[c]), index=a + c,
+            out.append(ChangePoint(recording=stack.labels[r_i], time_h=float(t[c]), index=a + c,
                                    slope_before_um_h=lin.slope(cuts[i - 1], c),
                                    slope_after_um_h=lin.slope(c, cuts[i + 1])))
     return out
