@@ -445,7 +445,7 @@ def diagnosis_names(out_dir: Path) -> Names:
     md = (out_dir / "report.md").read_text() if (out_dir / "report.md").is_file() else ""
     low = md.lower()
     nothing = "nothing significant is missing" in low
-    unfit = "not fit for compensation" in low
+    unfit = "this model is not fit for compensation" in low  # the identified model (the verdict's first line)
     closest = next((ln[2:] for ln in md.splitlines() if ln.startswith("- closest candidate: ")), "")
     models = sorted(out_dir.glob("*.diagnosed.model.toml"))
     if models:

@@ -108,6 +108,14 @@ def test_an_unfit_model_is_said_unfit_and_never_reassured(diagnosed):
     assert not d.adequacy.fit
     assert d.adequacy.lines()[0].startswith("this model is not fit for compensation")
     assert "nothing significant is missing" not in " ".join(d.conclusions)
+    # the verdict goes on to the model written: judged over the held-out blocks by the same 30 % bound
+    written = d.comparison.written
+    worst = max(written.metrics.values(), key=lambda m: m.max_error_pct_of_peak)
+    line = d.verdict()[-1]
+    assert line.startswith(f"the model written ({written.title}): over the held-out blocks its max |error| is "
+                           f"{worst.max_error_pct_of_peak:.0f} % of the peak displacement on axis z"), line
+    assert ("within the 30 %" in line) == (worst.max_error_pct_of_peak <= 30), line
+    assert d.conclusions[:len(d.verdict())] == d.verdict()
 
 
 def test_the_room_is_named_and_the_rewritten_model_predicts_a_fresh_day(plant_data, diagnosed):

@@ -19,7 +19,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from gateway import __version__
-from gateway.diagnose.adequacy import Adequacy, assess
+from gateway.diagnose.adequacy import MAX_ERROR_SHARE, Adequacy, assess
 from gateway.diagnose.compare import Comparison, compare
 from gateway.diagnose.confusable import Confusion, confusions
 from gateway.diagnose.data import Stack, build_stack, recording_labels
@@ -94,6 +94,10 @@ class Diagnosis:
     conclusions: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     wall_s: float = 0.0
+
+    def verdict(self) -> list[str]:
+        """The verdict: the identified model's fitness (:meth:`Adequacy.lines`), then the written model's."""
+        return [*self.adequacy.lines(), *([w] if (w := written_verdict(self)) else [])]
 
     @property
     def before(self) -> dict[str, AxisFigures]:
@@ -267,10 +271,34 @@ def missing_experiments(model: ThermalModel, stack: Stack) -> list[str]:
             if n not in have_names and not (k < len(prints) and prints[k] in have_prints)]
 
 
+def written_verdict(d: Diagnosis) -> str:
+    """Where another model than the identified one is written: its fitness over the held-out blocks, in words.
+
+    The identified model's verdict judges each recording it did not train on; the written model is judged on
+    the comparison's held-out blocks (each predicted from a fit without it), its max |error| against the largest
+    peak displacement there, by the same 30 % bound.
+    """
+    written = d.comparison.written
+    if written.key == "identified":
+        return ""
+    figures = [m for m in written.metrics.values() if np.isfinite(m.max_error_pct_of_peak)]
+    if not figures:
+        return ""
+    worst = max(figures, key=lambda m: m.max_error_pct_of_peak)
+    text = (f"the model written ({written.title}): over the held-out blocks its max |error| is "
+            f"{worst.max_error_pct_of_peak:.0f} % of the peak displacement on axis {worst.axis} "
+            f"({worst.max_abs_error_um:.3g} of {worst.peak_um:.3g} um)")
+    if worst.max_error_pct_of_peak <= 100 * MAX_ERROR_SHARE:
+        return text + f": within the {100 * MAX_ERROR_SHARE:.0f} % a model fit for compensation keeps"
+    return (text + f": over the {100 * MAX_ERROR_SHARE:.0f} % a model fit for compensation keeps: better than the "
+            "identified model, not fit for compensation either; validate it on recordings it never saw (--validate) "
+            "and look for what is still missing before compensating with it")
+
+
 def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
     """What can and cannot be concluded from these recordings, in plain sentences, the verdict first."""
     st = d.stack
-    out = list(d.adequacy.lines())
+    out = d.verdict()
     physics = [t for t in d.result.accepted if not t.hypothesis.artefact]
     cands = d.comparison.candidates
     written = d.comparison.written

@@ -204,8 +204,9 @@ def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = 
     L += [f"Recordings: {', '.join(labels)}. Model axes: {', '.join(d.model.axes)}. "
           f"{len(d.hypotheses)} hypotheses, {len(d.result.trials)} trials in {d.wall_s:.1f} s.", ""]
     L += [f"> {h}" for h in hedges] + ([""] if hedges else [])
-    L += ["## Verdict", ""] + [f"- {c}" for c in d.adequacy.lines()] + [""]
-    L += ["## Conclusions", ""] + [f"- {c}" for c in d.conclusions if c not in d.adequacy.lines()] + [""]
+    verdict = d.verdict()
+    L += ["## Verdict", ""] + [f"- {c}" for c in verdict] + [""]
+    L += ["## Conclusions", ""] + [f"- {c}" for c in d.conclusions if c not in verdict] + [""]
     if d.notes:
         L += ["Notes on the data:", ""] + [f"- {n}" for n in d.notes] + [""]
 
