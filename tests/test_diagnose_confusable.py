@@ -128,3 +128,19 @@ def test_a_recorded_thermometer_that_only_follows_the_spindle_current_is_said_in
 def test_a_room_thermometer_that_varies_on_its_own_is_not_said_indistinguishable():
     found = _confused([_room_thermometer(_day(d), d) for d in range(1, 5)])
     assert set(found) == {"cabinet"}, found
+
+
+def test_a_column_recorded_in_under_half_the_windows_is_not_tried_and_the_report_says_where_it_is():
+    from gateway.diagnose.hypotheses import partial_columns
+
+    days = [_day(d) for d in range(1, 4)]
+    one = [_cabinet_thermometer(days[0]), *days[1:]]
+    stack = build_stack(MODEL, one)
+    assert "recorded_signal:cabinet_c" not in {h.key for h in catalogue(stack, MODEL, INFOS)}
+    (line,) = partial_columns(stack)
+    assert line.startswith("column cabinet_c is recorded in 1 of 3 recordings (33 % of the windows: day1)"), line
+    assert "record it in every recording" in line
+    two = [_cabinet_thermometer(days[0]), _cabinet_thermometer(days[1]), days[2]]
+    stack = build_stack(MODEL, two)
+    assert "recorded_signal:cabinet_c" in {h.key for h in catalogue(stack, MODEL, INFOS)}
+    assert partial_columns(stack) == []

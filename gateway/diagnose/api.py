@@ -25,7 +25,7 @@ from gateway.diagnose.confusable import Confusion, confusions
 from gateway.diagnose.data import Stack, build_stack, recording_labels
 from gateway.diagnose.explain import Explanation, explain, held_corrections
 from gateway.diagnose.extend import extend_model
-from gateway.diagnose.hypotheses import FactorInfo, Hypothesis, catalogue
+from gateway.diagnose.hypotheses import FactorInfo, Hypothesis, catalogue, partial_columns
 from gateway.diagnose.locate import (
     ChangePoint,
     Correlation,
@@ -356,6 +356,7 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
                        f"held at the identified time constants ({ex.verdict}): no family is named")
     accepted = {t.hypothesis.key for t in physics} | {t.hypothesis.key for t in (ex.named if ex else [])}
     out += [c.line(accepted=c.key in accepted) for c in d.confusions]
+    out += partial_columns(st)
     span_h = max(b - a for a, b in st.bounds) * st.dt_s / 3600.0
     total_h = st.n * st.dt_s / 3600.0
     k = int(block.max()) + 1 if (block >= 0).any() else 0

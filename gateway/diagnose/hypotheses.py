@@ -223,16 +223,37 @@ def _column_settings(ctx: _Ctx, col: str) -> list[Setting]:
     return out
 
 
+#: a recorded column is tried as an input where it has values in at least this share of the windows
+MIN_COLUMN_SHARE = 0.5
+
+
+def _signal(v: np.ndarray) -> bool:
+    """Whether a column's values vary and are no counter (row index, day number): a physical signal."""
+    ok = np.isfinite(v)
+    if not ok.any() or np.nanstd(v) == 0:
+        return False
+    d = np.diff(v[ok])
+    return not (np.all(d >= 0) and np.allclose(v[ok], np.round(v[ok])))
+
+
 def _usable_columns(ctx: _Ctx) -> list[str]:
+    return [col for col, v in ctx.stack.extras.items()
+            if np.isfinite(v).sum() >= MIN_COLUMN_SHARE * len(v) and _signal(v)]
+
+
+def partial_columns(stack: Stack) -> list[str]:
+    """Sentences on the recorded signals too sparse to be tried (in under half the windows), where they are."""
     out = []
-    for col, v in ctx.stack.extras.items():
-        ok = np.isfinite(v)
-        if ok.sum() < 0.5 * len(v) or np.nanstd(v) == 0:
+    for col, v in stack.extras.items():
+        share = float(np.isfinite(v).mean()) if len(v) else 0.0
+        if not 0 < share < MIN_COLUMN_SHARE or not _signal(v):
             continue
-        d = np.diff(v[ok])
-        if np.all(d >= 0) and np.allclose(v[ok], np.round(v[ok])):
-            continue  # a counter (row index, day number): not a physical signal
-        out.append(col)
+        have = [stack.labels[r] for r, (a, b) in enumerate(stack.bounds) if np.isfinite(v[a:b]).any()]
+        out.append(f"column {col} is recorded in {len(have)} of {len(stack.bounds)} recordings ({100 * share:.0f} % "
+                   f"of the windows: {', '.join(have[:4])}{', ...' if len(have) > 4 else ''}): no hypothesis on it "
+                   f"was tried (it needs values in at least {100 * MIN_COLUMN_SHARE:.0f} % of the windows); record it "
+                   "in every recording, the identification experiments too, or diagnose the recordings that have "
+                   "it on their own")
     return out
 
 
