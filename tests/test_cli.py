@@ -191,6 +191,13 @@ def test_estimate_warns_when_the_model_names_another_machine(workdir, capsys):
     assert "`cncgw run` refuses it" in err
 
 
+def test_a_mistyped_model_file_is_named_with_the_model_file_beside_it(workdir, capsys):
+    Path("vmc.model.toml").write_text("")  # only its name matters: the error comes before any reading
+    assert main(["estimate", "--profile", "lathe.toml", "--model", "vmc.modle.toml", "val.csv"]) == 5
+    assert ('cncgw: error: vmc.modle.toml: model file not found (did you mean "vmc.model.toml"?); create it with '
+            "`cncgw identify --profile lathe.toml EXPERIMENTS... -o vmc.modle.toml`") in capsys.readouterr().err
+
+
 def test_console_script_exits_without_traceback(workdir):
     bad = Path("bad.csv")
     bad.write_text("time_s,speed,i_sq,x_um,z_um\n60,0,0,0,0\n120,0,zero,0,0\n")

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gateway.errors import GatewayError, ModelError, UsageError
+from gateway.errors import GatewayError, ModelError, UsageError, did_you_mean
 from gateway.model import ThermalModel, load_model
 from gateway.model.inputs import hold_missing
 from gateway.profile import Profile
@@ -125,7 +125,9 @@ def load_model_for(profile: Profile, path: str | Path | None) -> tuple[ThermalMo
     """Load the model (default: the profile's) and check it fits the profile's factors, units and axes."""
     path = Path(path) if path else profile.model_path
     if not path.exists():
-        raise ModelError(f"{path}: model file not found; create it with `cncgw identify --profile "
+        folder = path.parent if path.parent.is_dir() else None
+        near = did_you_mean(path.name, [p.name for p in folder.glob("*model*.toml")]) if folder is not None else ""
+        raise ModelError(f"{path}: model file not found{near}; create it with `cncgw identify --profile "
                          f"{profile_arg(profile)} EXPERIMENTS... -o {path}`")
     model = load_model(path)
     problems = []
