@@ -141,6 +141,14 @@ def test_a_recording_given_twice_is_refused_by_its_content(random_spindle, tmp_p
         assert "doubles its evidence" in err
 
 
+def test_identify_refuses_an_experiment_given_twice(random_spindle, tmp_path, capsys):
+    out = tmp_path / "m.model.toml"
+    assert main(["identify", "--profile", "sim-vmc", str(random_spindle), str(random_spindle), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"{random_spindle}: given twice: a recording given twice weighs twice in the fit" in err
+    assert not out.exists()
+
+
 def test_use_signal_of_a_column_no_recording_has_is_refused_naming_the_columns_there(random_spindle, capsys):
     assert main(["diagnose", "--profile", "sim-vmc", str(random_spindle), "--use-signal", "roomc"]) == 2
     err = capsys.readouterr().err

@@ -49,6 +49,18 @@ def warn_other_machine(model: ThermalModel, model_path: Path, profile: Profile, 
     return text
 
 
+def refuse_duplicates(recs: Sequence[Recording], factors: Sequence[str], *, counts: str) -> None:
+    """Refuse a recording given twice (by content: a copy or another path to it too); ``counts``: what it does."""
+    seen: dict[str, str] = {}
+    for r in recs:
+        fp = r.fingerprint(factors)
+        if fp in seen:
+            what = "given twice" if seen[fp] == r.source else (
+                f"the same data as {seen[fp]} (the same factors and displacement, whatever the file's name)")
+            raise UsageError(f"{r.source}: {what}: a recording given twice {counts}; give each recording once")
+        seen[fp] = r.source
+
+
 def positive_int(text: str) -> int:
     """Argparse type: an integer > 0."""
     try:

@@ -15,6 +15,7 @@ from gateway.commands._common import (
     load_model_for,
     positive_float,
     read_recordings,
+    refuse_duplicates,
     split_those_with,
     warn_other_machine,
 )
@@ -113,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
         if args.validate else []
     if args.split_by:
         recs, vrecs = split_those_with(recs, args.split_by, vrecs), split_those_with(vrecs, args.split_by, recs)
-    _check_distinct(recs, model.factors)
+    refuse_duplicates(recs, model.factors, counts="counts twice in the held-out blocks and doubles its evidence")
     _check_signals(args.use_signal, recs)
     options = Options(alpha=args.alpha, min_effect_share=args.min_effect, min_gain=args.min_gain,
                       blocks=_check_blocks(args.blocks, recs), reidentify=not args.no_reidentify,
@@ -172,19 +173,6 @@ def run(args: argparse.Namespace) -> int:
     for path in written.values():
         print(f"wrote {path}")
     return 0
-
-
-def _check_distinct(recs: list, factors) -> None:
-    """Refuse a recording given twice (by content: a copy or another path to it counts too)."""
-    seen: dict[str, str] = {}
-    for r in recs:
-        fp = r.fingerprint(factors)
-        if fp in seen:
-            what = "given twice" if seen[fp] == r.source else (
-                f"the same data as {seen[fp]} (the same factors and displacement, whatever the file's name)")
-            raise UsageError(f"{r.source}: {what}: a recording given twice counts twice in the held-out blocks and "
-                             "doubles its evidence; give each recording once")
-        seen[fp] = r.source
 
 
 def _check_signals(columns: list[str], recs: list) -> None:

@@ -14,6 +14,7 @@ from gateway.commands._common import (
     positive_int,
     progress_bar,
     read_recordings,
+    refuse_duplicates,
     refuse_writing_over_inputs,
     split_those_with,
 )
@@ -100,6 +101,8 @@ def run(args: argparse.Namespace) -> int:
     prod = read_recordings(args.production, profile, period_s=args.period_s, require_displacement=False)
     if args.split_by:  # a file of several runs (days): each run an experiment or production run of its own
         recs, prod = split_those_with(recs, args.split_by, prod), split_those_with(prod, args.split_by, recs)
+    refuse_duplicates([*recs, *prod], profile.factor_names,
+                      counts="weighs twice in the fit, as if its conditions had been run twice")
     if prod and args.method != "joint":
         raise UsageError("--production: production runs join the joint method only (--method joint)")
     total = len(profile.axes) * (len(structures) if args.method == "joint" else len(profile.factors))
