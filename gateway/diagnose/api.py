@@ -260,6 +260,27 @@ def _supported_region(model: ThermalModel, recordings: Sequence[Recording], *, r
     return replace(model, **changes)
 
 
+#: a factor counts as beyond the identification's coverage from this multiple of its largest covered deviation
+BEYOND = 1.2
+
+
+def beyond_coverage(model: ThermalModel, stack: Stack) -> list[str]:
+    """Factors the recordings drive well beyond the identification's coverage, in words ("speed up to 3x 1000 rpm")."""
+    out = []
+    ranges = model.coverage.ranges if model.coverage is not None else {}
+    for f, (lo, hi) in ranges.items():
+        u = stack.du.get(f)
+        if u is None or not np.isfinite(u).any():
+            continue
+        top, bottom = float(np.nanmax(u)), float(np.nanmin(u))
+        unit = f" {model.units[f]}" if model.units.get(f) else ""
+        if hi > 0 and top > BEYOND * hi:
+            out.append(f"{f} up to {top / hi:.2g}x the highest covered ({hi:.4g}{unit})")
+        elif lo < 0 and bottom < BEYOND * lo:
+            out.append(f"{f} down to {bottom / lo:.2g}x the lowest covered ({lo:.4g}{unit})")
+    return out
+
+
 def missing_experiments(model: ThermalModel, stack: Stack) -> list[str]:
     """The model's identification experiments (its ``[info] experiments``) not among the recordings."""
     listed = [str(n) for n in (model.info.get("experiments", []) or [])]
@@ -334,9 +355,11 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
                        "significantly (family-wise) and by a relevant amount, and re-identifying on all recordings "
                        "does not predict better")
     elif not physics and not (d.explanation and d.explanation.named):
+        beyond = beyond_coverage(d.model, st)
         out.append("no missing physics is named, but the model identified again on all recordings predicts the "
-                   "held-out blocks better: the identification experiments did not pin its paths down (too little "
-                   "excitation, or a disturbance during them); the re-identified model is written")
+                   "held-out blocks better: the identification experiments did not pin its paths down ("
+                   + (f"the other recordings go beyond what they covered: {'; '.join(beyond)}; or " if beyond else "")
+                   + "too little excitation, or a disturbance during them); the re-identified model is written")
     ex = d.explanation
     if ex is not None:
         changed = "; ".join(ex.changes) or "its gains, no time constant by more than 25 %"
