@@ -582,14 +582,6 @@ def _decide(chosen: Trial, passing: Sequence[Trial], o: Options, *, near: Sequen
     (bench viscous drag v6: bearing preload Holm p = 0.019 taken, heat ~ speed^2 0.028 not, both 73 % of z's
     held-out error).
     """
-    for t in near:
-        if t.hypothesis.generic or t.hypothesis.artefact or chosen.hypothesis.artefact or t is chosen:
-            continue
-        p_pair = one_sided_p(_pair(t, chosen, near=True))
-        if p_pair >= o.alpha:
-            t.verdict += (f"; significant alone, and {chosen.hypothesis.key} does not predict the held-out blocks "
-                          f"significantly better (p = {p_pair:.2g}): not told apart")
-            chosen.rivals.append(t)
     for t in passing:
         if t is chosen:
             t.verdict = "accepted"
@@ -603,6 +595,15 @@ def _decide(chosen: Trial, passing: Sequence[Trial], o: Options, *, near: Sequen
                      f"better (p = {p_pair:.2g}): not told apart; {chosen.hypothesis.key} was taken (fewer "
                      "parameters, passing with the paths held, or the larger held-out gain)")
         if not (t.hypothesis.generic or t.hypothesis.artefact or chosen.hypothesis.artefact):
+            chosen.rivals.append(t)
+    # then those short of the correction: the passing rivals come first in the report
+    for t in near:
+        if t.hypothesis.generic or t.hypothesis.artefact or chosen.hypothesis.artefact or t is chosen:
+            continue
+        p_pair = one_sided_p(_pair(t, chosen, near=True))
+        if p_pair >= o.alpha:
+            t.verdict += (f"; significant alone, and {chosen.hypothesis.key} does not predict the held-out blocks "
+                          f"significantly better (p = {p_pair:.2g}): not told apart")
             chosen.rivals.append(t)
 
 
