@@ -19,7 +19,7 @@ import pytest
 
 from gateway.cli import main
 from gateway.diagnose import diagnose
-from gateway.diagnose.api import beyond_coverage, validate
+from gateway.diagnose.api import uncovered_factors, validate
 from gateway.diagnose.data import build_stack
 from gateway.identify import identify
 from gateway.model import FirstOrder, PathTF, ThermalModel, load_model, save_model
@@ -140,9 +140,9 @@ def test_the_rewritten_model_covers_and_bounds_the_days_it_was_fitted_on(plant_d
     # 1000, the model fitted on the days too covers them (a fresh day at 2500 rpm is no excursion for it)
     assert base.coverage.ranges["speed"][1] == pytest.approx(1000.0, rel=0.05)
     # what the report says where more data alone changed the paths: the days went beyond the experiments
-    beyond = beyond_coverage(base, build_stack(base, days))
+    beyond = uncovered_factors(base, build_stack(base, days))
     assert any(b.startswith("speed up to 2.5x the highest covered (1") for b in beyond), beyond
-    assert beyond_coverage(base, build_stack(base, exps)) == []
+    assert uncovered_factors(base, build_stack(base, exps)) == []
     assert d.extended.coverage.ranges["speed"][1] == pytest.approx(2500.0 - 0.0, rel=0.05)
     # and its plausibility envelope holds what the days measured (the live gateway would hold offsets beyond it)
     measured_span = max(float(np.ptp(r.displacement["z"])) for r in days)

@@ -55,32 +55,34 @@ def test_diagnose_without_matplotlib_writes_its_report_and_model(random_spindle,
 
 
 # ------------------------------------------------------------------------------------- diagnose --split-by ---
+def _moved_rows(rec, um_by_row):
+    """``rec``'s header and rows (split on commas), each displacement moved by ``um_by_row(row index)`` um."""
+    lines = [ln for ln in rec.read_text().splitlines() if not ln.startswith("#")]
+    um = [k for k, name in enumerate(lines[0].split(",")) if name.endswith("_um")]
+    rows = [[f"{float(v) + um_by_row(i):g}" if k in um and v else v for k, v in enumerate(ln.split(","))]
+            for i, ln in enumerate(lines[1:])]
+    return lines[0], rows
+
+
 def _two_days(rec, path):
     """``rec`` twice, one after the other, with a day column: a logger's file of several days.
 
     Each day's displacement is moved (0.2 and 0.3 um): two runs, not one given three times (refused).
     """
-    lines = [ln for ln in rec.read_text().splitlines() if not ln.startswith("#")]
-    um = [k for k, name in enumerate(lines[0].split(",")) if name.endswith("_um")]
-    rows = [ln.split(",") for ln in lines[1:]]
-    last = float(rows[-1][0])
-
-    def moved(r, by):
-        return [f"{float(v) + by:g}" if k in um and v else v for k, v in enumerate(r)]
-
-    out = [lines[0] + ",day"]
-    out += [",".join(moved(r, 0.2)) + ",1" for r in rows]
-    out += [",".join([f"{float(r[0]) + last:g}", *moved(r, 0.3)[1:]]) + ",2" for r in rows]
+    header, one = _moved_rows(rec, lambda i: 0.2)
+    _, two = _moved_rows(rec, lambda i: 0.3)
+    last = float(one[-1][0])
+    out = [header + ",day"]
+    out += [",".join(r) + ",1" for r in one]
+    out += [",".join([f"{float(r[0]) + last:g}", *r[1:]]) + ",2" for r in two]
     path.write_text("\n".join(out) + "\n")
     return path
 
 
-def _other_run(rec, path):
-    """``rec`` with its displacement 0.5 um higher: another run (diagnose refuses to validate on one it fits)."""
-    lines = [ln for ln in rec.read_text().splitlines() if not ln.startswith("#")]
-    um = [k for k, name in enumerate(lines[0].split(",")) if name.endswith("_um")]
-    rows = [[f"{float(v) + 0.5:g}" if k in um and v else v for k, v in enumerate(ln.split(","))] for ln in lines[1:]]
-    path.write_text("\n".join([lines[0], *(",".join(r) for r in rows)]) + "\n")
+def _other_run(rec, path, um_by_row=lambda i: 0.5):
+    """``rec`` with its displacement moved (0.5 um higher): another run (diagnose refuses to validate on one it fits)."""
+    header, rows = _moved_rows(rec, um_by_row)
+    path.write_text("\n".join([header, *(",".join(r) for r in rows)]) + "\n")
     return path
 
 
@@ -108,13 +110,10 @@ def test_split_by_a_column_no_recording_has_is_a_usage_error_naming_the_files(ra
 
 def test_files_of_one_name_in_two_folders_are_told_apart_wherever_the_report_names_a_recording(random_spindle,
                                                                                                tmp_path, capsys):
-    lines = [ln for ln in random_spindle.read_text().splitlines() if not ln.startswith("#")]
-    um = [k for k, name in enumerate(lines[0].split(",")) if name.endswith("_um")]
+    n = sum(not ln.startswith("#") for ln in random_spindle.read_text().splitlines())
     for day, drift in (("d1", 4.0), ("d2", -3.0)):  # a sensor drifting by some um over the run: windows to locate
-        rows = [[f"{float(v) + drift * i / len(lines):g}" if k in um and v else v for k, v in enumerate(ln.split(","))]
-                for i, ln in enumerate(lines[1:])]
         (tmp_path / day).mkdir()
-        (tmp_path / day / "log.csv").write_text("\n".join([lines[0], *(",".join(r) for r in rows)]) + "\n")
+        _other_run(random_spindle, tmp_path / day / "log.csv", lambda i, drift=drift: drift * i / n)
     out = tmp_path / "diag"
     assert main(["diagnose", "--profile", "sim-vmc", str(tmp_path / "d1" / "log.csv"), str(tmp_path / "d2" / "log.csv"),
                  "--no-reidentify", "-o", str(out), "--json"]) == 0

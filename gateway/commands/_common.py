@@ -49,8 +49,11 @@ def warn_other_machine(model: ThermalModel, model_path: Path, profile: Profile, 
     return text
 
 
-def refuse_duplicates(recs: Sequence[Recording], factors: Sequence[str], *, counts: str) -> None:
-    """Refuse a recording given twice (by content: a copy or another path to it too); ``counts``: what it does."""
+def refuse_duplicates(recs: Sequence[Recording], factors: Sequence[str], *, counts: str) -> dict[str, str]:
+    """Refuse a recording given twice (by content: a copy or another path to it too); ``counts``: what it does.
+
+    Returns each recording's fingerprint (:meth:`Recording.fingerprint`) -> its source.
+    """
     seen: dict[str, str] = {}
     for r in recs:
         fp = r.fingerprint(factors)
@@ -59,6 +62,7 @@ def refuse_duplicates(recs: Sequence[Recording], factors: Sequence[str], *, coun
                 f"the same data as {seen[fp]} (the same factors and displacement, whatever the file's name)")
             raise UsageError(f"{r.source}: {what}: a recording given twice {counts}; give each recording once")
         seen[fp] = r.source
+    return seen
 
 
 def positive_int(text: str) -> int:

@@ -114,13 +114,13 @@ def run(args: argparse.Namespace) -> int:
         if args.validate else []
     if args.split_by:
         recs, vrecs = split_those_with(recs, args.split_by, vrecs), split_those_with(vrecs, args.split_by, recs)
-    refuse_duplicates(recs, model.factors, counts="counts twice in the held-out blocks and doubles its evidence")
+    fitted = refuse_duplicates(recs, model.factors,
+                               counts="counts twice in the held-out blocks and doubles its evidence")
     _check_signals(args.use_signal, recs)
     options = Options(alpha=args.alpha, min_effect_share=args.min_effect, min_gain=args.min_gain,
                       blocks=_check_blocks(args.blocks, recs), reidentify=not args.no_reidentify,
                       use_signals=tuple(args.use_signal))
     # a validation recording that is also diagnosed would be scored on data the model was fitted on
-    fitted = {r.fingerprint(model.factors): r.source for r in recs}
     for v in vrecs:
         same = fitted.get(v.fingerprint(model.factors))
         if same is not None:

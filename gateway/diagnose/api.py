@@ -47,7 +47,7 @@ from gateway.diagnose.locate import (
 from gateway.diagnose.refit import Reidentified, path_corrections, reidentify
 from gateway.diagnose.search import AxisEvidence, Options, SearchResult, Trial, search, sized
 from gateway.diagnose.select import BURN_IN, blocks_to_decide, make_blocks
-from gateway.model.coverage import coverage_of
+from gateway.model.coverage import check_coverage, coverage_of
 from gateway.model.envelope import envelope_of
 from gateway.model.model import ThermalModel
 from gateway.prepare import prepare
@@ -260,24 +260,20 @@ def _supported_region(model: ThermalModel, recordings: Sequence[Recording], *, r
     return replace(model, **changes)
 
 
-#: a factor counts as beyond the identification's coverage from this multiple of its largest covered deviation
-BEYOND = 1.2
+def uncovered_factors(model: ThermalModel, stack: Stack) -> list[str]:
+    """Factors the recordings drive beyond the identification's coverage, in words ("speed up to 3x ... (1000 rpm)").
 
-
-def beyond_coverage(model: ThermalModel, stack: Stack) -> list[str]:
-    """Factors the recordings drive well beyond the identification's coverage, in words ("speed up to 3x 1000 rpm")."""
+    Where :func:`check_coverage` flags them (the notes on the data say the same per recording), the ranges only.
+    """
+    if model.coverage is None or not stack.n:
+        return []
+    du = np.vstack([stack.du[f] for f in model.factors])
     out = []
-    ranges = model.coverage.ranges if model.coverage is not None else {}
-    for f, (lo, hi) in ranges.items():
-        u = stack.du.get(f)
-        if u is None or not np.isfinite(u).any():
-            continue
-        top, bottom = float(np.nanmax(u)), float(np.nanmin(u))
-        unit = f" {model.units[f]}" if model.units.get(f) else ""
-        if hi > 0 and top > BEYOND * hi:
-            out.append(f"{f} up to {top / hi:.2g}x the highest covered ({hi:.4g}{unit})")
-        elif lo < 0 and bottom < BEYOND * lo:
-            out.append(f"{f} down to {bottom / lo:.2g}x the lowest covered ({lo:.4g}{unit})")
+    for e in check_coverage(model.coverage, du, model.factors, model.units).excursions:
+        if e.kind == "range" and e.bound != 0 and e.value / e.bound > 0:
+            unit = f" {e.unit}" if e.unit else ""
+            out.append(f"{e.what} {'up' if e.side == 'above' else 'down'} to {e.value / e.bound:.2g}x the "
+                       f"{'highest' if e.side == 'above' else 'lowest'} covered ({e.bound:.4g}{unit})")
     return out
 
 
@@ -355,7 +351,7 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
                        "significantly (family-wise) and by a relevant amount, and re-identifying on all recordings "
                        "does not predict better")
     elif not physics and not (d.explanation and d.explanation.named):
-        beyond = beyond_coverage(d.model, st)
+        beyond = uncovered_factors(d.model, st)
         out.append("no missing physics is named, but the model identified again on all recordings predicts the "
                    "held-out blocks better: the identification experiments did not pin its paths down ("
                    + (f"the other recordings go beyond what they covered: {'; '.join(beyond)}; or " if beyond else "")

@@ -30,6 +30,7 @@ import numpy as np
 
 from gateway.diagnose.data import Stack, lag
 from gateway.diagnose.hypotheses import Hypothesis
+from gateway.model.coverage import duration_text
 from gateway.model.inputs import Column, DerivedInput, Periodic
 
 #: the thermal lag the inputs are compared through: what a path smooths away cannot tell anything apart
@@ -60,13 +61,9 @@ class Confusion:
                 "them apart, so these recordings cannot name it")
         return (f"{self.title}: on these recordings its input ({'; '.join(self.inputs)}) follows {self.factor} "
                 f"to all but {100 * self.unexplained:.2g} % of its variation (through a {LAG_S / 3600:g} h lag"
-                + (f"; {self.factor} through another {_duration(self.factor_lag_s)}" if self.factor_lag_s else "")
+                + (f"; {self.factor} through another {duration_text(self.factor_lag_s)}" if self.factor_lag_s else "")
                 + "): "
                 f"{what}; to tell them apart: {self.tell_apart}")
-
-
-def _duration(s: float) -> str:
-    return f"{s / 3600:g} h" if s >= 3600 else f"{s / 60:g} min"
 
 
 def unexplained_share(u: np.ndarray, v: np.ndarray) -> float:

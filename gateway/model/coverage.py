@@ -105,7 +105,8 @@ class Excursion:
         name = f"{self.what} ({self.kind})" if self.kind == "ratio" else self.what
         reach = "up to" if self.side == "above" else "down to"
         return (f"{name} {self.side} coverage: {reach} {self.how_far()}; {self.windows} windows "
-                f"({_duration(self.windows * window_s)}), longest stretch {_duration(self.longest * window_s)}, "
+                f"({duration_text(self.windows * window_s)}), longest stretch "
+                f"{duration_text(self.longest * window_s)}, "
                 f"first at window {self.first + 1}")
 
 
@@ -113,7 +114,8 @@ def _word(side: str) -> str:
     return "highest" if side == "above" else "lowest"
 
 
-def _duration(s: float) -> str:
+def duration_text(s: float) -> str:
+    """Seconds as minutes below an hour, else hours ("30 min", "1 h", "2.5 h")."""
     return f"{s / 3600:.3g} h" if s >= 3600 else f"{s / 60:.3g} min"
 
 
