@@ -49,7 +49,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "recorded (none), or best constant offset (optimistic)")
     p.add_argument("--initial-state", choices=INITIAL_STATES, default="rest",
                    help="the model's state at the start: at rest (default), or fitted to the first hour of measured "
-                        "displacement as free decays of its slow modes (fit: a recording that starts warm)")
+                        "displacement as the state a heat history of its inputs leaves (fit: a recording that "
+                        "starts warm)")
     p.add_argument("--history", metavar="RECORDING",
                    help="a recording that ended before the first one (the previous day): the model runs over it "
                         "first, so the recording starts in the state it left; with several recordings, each "
