@@ -288,6 +288,55 @@ def test_a_workbook_or_a_folder_given_for_a_recording_is_named_as_such(workdir, 
         assert "Errno" not in err
 
 
+def test_a_file_of_days_with_a_time_column_splits_into_days_without_the_nights_between(workdir, capsys):
+    # a new user's file: two days of 180 rows with the time of day, nothing recorded over the night between them;
+    # each day's run ran on over the night's empty windows to the next day's start (1440 windows, "1233 missing
+    # window(s)", recorded columns said to be in 15 % of the windows)
+    from gateway.commands._common import split_by
+    from gateway.profile import load_profile
+    from gateway.recording import read_for_profile
+
+    lines = Path("val.csv").read_text().splitlines()
+    head = [ln for ln in lines if ln.startswith("#")]
+    body = [ln for ln in lines if not ln.startswith("#")]
+    rows = [ln.split(",") for ln in body[1:]]
+    night_s = 20 * 3600.0
+    days = [",".join([f"{float(r[0]) + (night_s if k >= 180 else 0.0):.6g}", *r[1:], "1" if k < 180 else "2"])
+            for k, r in enumerate(rows)]
+    Path("days.csv").write_text("\n".join([*head, body[0] + ",day", *days]) + "\n")
+    runs = split_by(read_for_profile("days.csv", load_profile("lathe.toml")), "day")
+    assert [(r.source, len(r)) for r in runs] == [("days.csv[day=1]", 180), ("days.csv[day=2]", len(rows) - 180)]
+    assert all(r.present.all() and not r.gaps for r in runs)
+    assert main(["identify", "--profile", "lathe.toml", "exp1.csv", "exp2.csv", "-o", "m.toml"]) == 0
+    capsys.readouterr()
+    assert main(["estimate", "--profile", "lathe.toml", "--model", "m.toml", "days.csv", "--split-by", "day",
+                 "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [e["axes"]["z"]["windows"] for e in out] == [180, len(rows) - 180]
+    assert not any("missing window" in n for e in out for n in e["notes"])
+
+
+def test_a_blank_stretch_of_factor_cells_is_said_where_it_is(workdir, capsys):
+    # a new user's file with half an hour of blank CNC cells: the estimate (and a diagnosis) over it and for hours
+    # after rests on the gap policy; the note said how many rows, not where
+    lines = Path("val.csv").read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if not ln.startswith("#"))
+    header = lines[k].split(",")
+    cols = [header.index("speed"), header.index("i_sq")]
+    for i in range(k + 1 + 100, k + 1 + 130):
+        cells = lines[i].split(",")
+        for c in cols:
+            cells[c] = ""
+        lines[i] = ",".join(cells)
+    Path("blank.csv").write_text("\n".join(lines) + "\n")
+    assert main(["identify", "--profile", "lathe.toml", "exp1.csv", "exp2.csv", "-o", "m.toml"]) == 0
+    capsys.readouterr()
+    assert main(["estimate", "--profile", "lathe.toml", "--model", "m.toml", "blank.csv", "--json"]) == 0
+    (e,) = json.loads(capsys.readouterr().out)
+    (note,) = [n for n in e["notes"] if "empty factor cells" in n]
+    assert note.startswith("30 row(s) with empty factor cells (the longest: 30 windows from 1.67 h); gap policy hold")
+
+
 def test_a_file_split_by_a_date_keeps_its_dates_and_two_runs_of_one_name_are_not_written_over(workdir, capsys):
     from gateway.commands._common import split_by
     from gateway.recording import read_for_profile

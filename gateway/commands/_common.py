@@ -92,9 +92,15 @@ def split_by(rec: Recording, column: str) -> list[Recording]:
         raise UsageError(f'{rec.source}: --split-by: no numeric column "{column}" (numeric extra columns: {have})')
     held = hold_missing(np.asarray(values, float))
     cuts = [0, *(np.flatnonzero(np.diff(held) != 0) + 1).tolist(), len(rec)]
+    runs = []
+    for a, b in itertools.pairwise(cuts):
+        # a gap between two runs (the night between two days of a file with a time column) is rows of no
+        # window: it belongs to neither, or a day of 207 rows ran to the next day's start, 1440 windows long
+        rows = np.flatnonzero(rec.present[a:b])
+        if rows.size:
+            runs.append((a + int(rows[0]), a + int(rows[-1]) + 1))
     # the value as written (a date 20240105 stays whole, where :g made every run 2.02401e+07)
-    return [replace(rec.slice(a, b), source=f"{rec.source}[{column}={held[a]:.15g}]")
-            for a, b in itertools.pairwise(cuts) if b > a]
+    return [replace(rec.slice(a, b), source=f"{rec.source}[{column}={held[a]:.15g}]") for a, b in runs]
 
 
 def split_those_with(recs: list[Recording], column: str, others: Sequence[Recording] = ()) -> list[Recording]:
