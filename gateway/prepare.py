@@ -128,9 +128,16 @@ def prepare(
         what = "hold: last window's factors assumed to go on" if gap_policy == "hold" else \
             "reference: machine assumed idle at the reference state"
         extra = n_bad - missing_rows
-        notes.append(f"{missing_rows} missing window(s) in {len(rec.gaps)} gap(s)"
-                     + (f" and {extra} row(s) with empty factor cells" if extra > 0 else "")
-                     + f"; gap policy {what}")
+        # where: the longest stretches without every factor, in hours from the start (the file's rows and the
+        # windows of a gap are not numbered alike); the estimate over and after them rests on the policy
+        edges = np.flatnonzero(np.diff(np.r_[0, (~rows_ok).astype(np.int8), 0]))
+        stretches = sorted(zip(edges[::2], edges[1::2], strict=True), key=lambda r: r[0] - r[1])
+        where = ", ".join(f"{b - a} windows from {(rec.time_s[a] - rec.time_s[0]) / 3600:.3g} h"
+                          for a, b in stretches[:3])
+        parts = ([f"{missing_rows} missing window(s) in {len(rec.gaps)} gap(s)"] if missing_rows else []) + (
+            [f"{extra} row(s) with empty factor cells"] if extra > 0 else [])
+        notes.append(f"{' and '.join(parts)} (the longest: {where}{', ...' if len(stretches) > 3 else ''}); gap "
+                     f"policy {what}; the estimate over them and for hours after rests on that assumption")
         for j in range(u.shape[0]):
             row = u[j]
             if gap_policy == "reference":
