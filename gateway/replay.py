@@ -67,9 +67,10 @@ class AxisFigures:
 
     def line(self) -> str:
         """One line for people: ``z: RMS 0.412 um, max |error| ...``."""
+        share = (f"max error {self.max_error_pct_of_peak:.1f} % of peak" if math.isfinite(self.max_error_pct_of_peak)
+                 else "no displacement to take a share of")
         return (f"{self.axis}: RMS {self.rms_um:.3f} um, max |error| {self.max_abs_error_um:.3f} um, "
-                f"peak |displacement| {self.peak_um:.3f} um, max error {self.max_error_pct_of_peak:.1f} % of peak "
-                f"({self.windows} windows)")
+                f"peak |displacement| {self.peak_um:.3f} um, {share} ({self.windows} windows)")
 
 
 @dataclass(frozen=True, kw_only=True)

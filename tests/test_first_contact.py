@@ -108,6 +108,21 @@ def test_split_by_a_column_no_recording_has_is_a_usage_error_naming_the_files(ra
     assert f"{random_spindle}: none" in err
 
 
+def test_a_recording_too_short_to_hold_out_anything_is_refused_not_reassured(random_spindle, tmp_path, capsys):
+    # a new user's one-row file: "within inf % of the peak displacement" and "nothing significant is missing"
+    lines = random_spindle.read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if not ln.startswith("#"))
+    short = tmp_path / "short.csv"
+    short.write_text("\n".join(lines[: k + 2]) + "\n")
+    assert main(["diagnose", "--profile", "sim-vmc", str(short)]) == 4  # a bad recording
+    err = capsys.readouterr().err
+    assert err.startswith("cncgw: error: short: 1 window(s) with measured displacement")
+    assert "give 0 held-out block(s); a diagnosis judges on at least 3" in err
+    assert main(["estimate", "--profile", "sim-vmc", str(short)]) == 0
+    out = capsys.readouterr().out
+    assert "no displacement to take a share of (1 windows)" in out and "inf %" not in out
+
+
 def test_files_of_one_name_in_two_folders_are_told_apart_wherever_the_report_names_a_recording(random_spindle,
                                                                                                tmp_path, capsys):
     n = sum(not ln.startswith("#") for ln in random_spindle.read_text().splitlines())

@@ -47,6 +47,7 @@ from gateway.diagnose.locate import (
 from gateway.diagnose.refit import Reidentified, path_corrections, reidentify
 from gateway.diagnose.search import AxisEvidence, Options, SearchResult, Trial, search, sized
 from gateway.diagnose.select import BURN_IN, blocks_to_decide, make_blocks
+from gateway.errors import RecordingError
 from gateway.model.coverage import check_coverage, coverage_of
 from gateway.model.envelope import envelope_of
 from gateway.model.model import ThermalModel
@@ -124,6 +125,8 @@ class Diagnosis:
 
 #: days of recordings a daily cycle needs before it can be told from the schedule and a drift
 DAYS_FOR_DAILY = 3.0
+#: fewer held-out blocks than this and nothing can be judged (the signed-rank test needs 3 to say anything)
+MIN_HELD_BLOCKS = 3
 
 
 def factor_infos(profile: Profile) -> list[FactorInfo]:
@@ -164,6 +167,15 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
         adequacy = assess(stack, model, {a: f.noise.sigma_um for a, f in findings.items()}, steps_um)
         measured = np.isfinite(stack.y).any(axis=0)
         block = make_blocks(stack.bounds, measured, options.blocks)
+        held_blocks = int(block.max()) + 1 if (block >= 0).any() else 0
+        if held_blocks < MIN_HELD_BLOCKS:
+            # nothing can be judged on data it did not train on: a verdict would be "within inf % of a 0 um peak"
+            # and "nothing significant is missing" over a single window (a new user's one-row file)
+            raise RecordingError(
+                f"{', '.join(stack.names)}: {int(measured.sum())} window(s) with measured displacement, "
+                f"{stack.n * stack.dt_s / 3600:.2g} h in all, give {held_blocks} held-out block(s); a diagnosis "
+                f"judges on at least {MIN_HELD_BLOCKS} (a recording gives some from 6 measured windows on, blocks "
+                "of hours from a few hours on): record longer or add recordings")
         hyps = catalogue(stack, model, infos, families=families)
         confused = confusions(stack, hyps)
         # two ways to judge a hypothesis: as a term on the frozen identified model (its paths trusted), and with
