@@ -36,7 +36,7 @@ import math
 import os
 import re
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from types import MappingProxyType
@@ -157,6 +157,17 @@ class Recording:
     def factor_matrix(self, names: Sequence[str]) -> np.ndarray:
         """Factors as an array of shape (len(names), N)."""
         return np.vstack([self.factors[n] for n in names]) if names else np.zeros((0, len(self)))
+
+    def ending_before(self, rec: Recording) -> Recording:
+        """The recording with its times moved to end one window before ``rec`` starts (its own gaps kept).
+
+        Files read with a row period (``--period-s``) each count their times from 0: one given as another's
+        history (``--history``) ran just before it, which their times cannot say.
+        """
+        if not len(self) or not len(rec):
+            return self
+        t = self.time_s + (float(rec.time_s[0]) - rec.period_s - float(self.time_s[-1]))
+        return replace(self, time_s=t, gaps=_gaps_from_mask(t, self.present))
 
     def slice(self, start: int, stop: int) -> Recording:
         """Rows ``start:stop`` as a recording of their own (gaps recomputed)."""

@@ -337,6 +337,30 @@ def test_a_blank_stretch_of_factor_cells_is_said_where_it_is(workdir, capsys):
     assert note.startswith("30 row(s) with empty factor cells (the longest: 30 windows from 1.67 h); gap policy hold")
 
 
+def test_a_history_read_with_a_row_period_ran_just_before_the_recording(workdir, capsys):
+    # files without a time column each count from 0: --history was refused ("ends at t=5940 s, not before ...
+    # starts (t=0 s)"), which the user could not mend; it is taken to end one window before, as times would say
+    lines = Path("val.csv").read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if not ln.startswith("#"))
+    body = lines[k + 1:]
+    for name, rows in (("am", body[:150]), ("pm", body[150:])):
+        Path(f"{name}_t.csv").write_text("\n".join([lines[k], *rows]) + "\n")
+        Path(f"{name}.csv").write_text("\n".join(",".join(ln.split(",")[1:]) for ln in [lines[k], *rows]) + "\n")
+    assert main(["identify", "--profile", "lathe.toml", "exp1.csv", "exp2.csv", "-o", "m.toml"]) == 0
+    capsys.readouterr()
+    runs = {}
+    for tag, args in (("timed", ["--history", "am_t.csv", "pm_t.csv"]),
+                      ("period", ["--period-s", "60", "--history", "am.csv", "pm.csv", "pm.csv"])):
+        assert main(["estimate", "--profile", "lathe.toml", "--model", "m.toml", *args, "--json"]) == 0
+        runs[tag] = json.loads(capsys.readouterr().out)
+    timed, (period, again) = runs["timed"][0], runs["period"]
+    assert any(n.startswith("started in the state am.csv left") for n in period["notes"])
+    for a in ("x", "z"):
+        assert period["axes"][a]["rms_um"] == pytest.approx(timed["axes"][a]["rms_um"], rel=1e-9)
+    # a second file carries on from the first (it ran just after it, times counted from 0 again)
+    assert any(n.startswith("started in the state pm.csv left") for n in again["notes"])
+
+
 def test_a_file_split_by_a_date_keeps_its_dates_and_two_runs_of_one_name_are_not_written_over(workdir, capsys):
     from gateway.commands._common import split_by
     from gateway.recording import read_for_profile

@@ -80,7 +80,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="a recording that ran just before the first --validate recording: it starts in the state "
                         "this one left (recordings given that end one window before another starts are chained "
                         "that way on their own; the runs of a --split-by file never are, nor files read with "
-                        "--period-s, whose times each count from 0)")
+                        "--period-s, whose times each count from 0: a --history read so is taken to end one "
+                        "window before the first --validate recording starts)")
     p.add_argument("--use-signal", action="append", default=[], metavar="COLUMN",
                    help="a recorded column whose meaning you have checked (e.g. a temperature of a known part): a "
                         "hypothesis on it may be written into the model; other recorded signals are only named "

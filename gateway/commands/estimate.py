@@ -54,7 +54,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--history", metavar="RECORDING",
                    help="a recording that ended before the first one (the previous day): the model runs over it "
                         "first, so the recording starts in the state it left; with several recordings, each "
-                        "one is the next one's history")
+                        "one is the next one's history (read with --period-s, whose times each count from 0: "
+                        "taken to end one window before the recording starts)")
     p.add_argument("--probes", metavar="PROBES",
                    help="a probe CSV (time, seq, x_um, y_um, z_um, sd_um): the estimate is the model updated by "
                         "the probes taken during each recording, with its 95 %% band; -o writes it with "
@@ -128,6 +129,7 @@ def run(args: argparse.Namespace) -> int:
         return _run_probed(args, profile, model, model_path, recs, history, paths)
     ests = []
     for r in recs:
+        history = _ran_before(history, r, args)
         e = estimate(model, r, initial=args.initial, gap_policy=args.gap_policy, align=args.align, history=history,
                      initial_state=args.initial_state)
         if history is None and args.initial_state == "rest":
@@ -160,6 +162,15 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _ran_before(history: Any, rec: Any, args: argparse.Namespace) -> Any:
+    """``history`` as what ``rec`` starts from (as it is, or None).
+
+    Files read with ``--period-s`` each count their times from 0, so a history given or carried is taken to end
+    one window before ``rec`` starts.
+    """
+    return history.ending_before(rec) if args.period_s and history is not None else history
+
+
 def _carried(history: Any, rec: Any) -> Any:
     """The history the next recording starts from: ``history`` run on through ``rec``.
 
@@ -182,6 +193,7 @@ def _run_probed(args: argparse.Namespace, profile: Any, model: Any, model_path: 
     probes = read_probes(args.probes, axes=model.axes)
     runs, figures = [], []
     for r in recs:
+        history = _ran_before(history, r, args)
         base = estimate(model, r, initial=args.initial, gap_policy=args.gap_policy, align=args.align,
                         history=history)
         pr = estimate_with_probes(model, r, probes, initial=args.initial, gap_policy=args.gap_policy,

@@ -571,6 +571,8 @@ def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence
         hist = None
         for part in before_it:
             hist = part if hist is None else continued(hist, part)
+        if hist is not None and not chain:  # files whose times each count from 0: the history ran just before
+            hist = hist.ending_before(rec)
         initial_state = "rest"
         if hist is not None:
             start = f"carried from {', '.join(label[p.source] for p in before_it)} (ran just before it)"
