@@ -14,6 +14,7 @@ from gateway.commands._common import (
     check_output,
     load_model_for,
     positive_float,
+    progress_bar,
     read_recordings,
     refuse_duplicates,
     split_those_with,
@@ -130,7 +131,13 @@ def run(args: argparse.Namespace) -> int:
     history = None
     if args.history:
         history = read_recordings([args.history], profile, period_s=args.period_s, require_displacement=False)[0]
-    d = diagnose(model, recs, factors=factor_infos(profile), options=options, gap_policy=args.gap_policy)
+    # what it tries as it goes (a bar on a terminal, nothing in a pipe): a diagnosis takes tens of seconds
+    update, close = progress_bar(None, "diagnose")
+    try:
+        d = diagnose(model, recs, factors=factor_infos(profile), options=options, gap_policy=args.gap_policy,
+                     progress=update)
+    finally:
+        close()
     d.conclusions += hedges
     if args.period_s:
         hedges.append(f"rows were taken as {args.period_s:g} s apart (--period-s): every time constant and dead time "
