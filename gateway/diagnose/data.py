@@ -189,6 +189,28 @@ class Stack:
         out[: max(1, min(int(first[0]) if first.size else hi - lo, LEAD_IN_MAX))] = True
         return out
 
+    def is_signal(self, col: str) -> bool:
+        """Whether recorded column ``col`` varies and is no counter: a physical signal to try as an input.
+
+        A counter is, in every recording, a row index or a day number (whole numbers that never fall) or a clock
+        (values rising linearly with time); one that starts again in each run of a split file (``sample_index``
+        of a file of days) is a counter too, where the stacked column falls at every run's start.
+        """
+        v = self.extras[col]
+        if not np.isfinite(v).any() or np.nanstd(v) == 0:
+            return False
+        for a, b in self.bounds:
+            ok = np.isfinite(v[a:b])
+            x, t = v[a:b][ok], self.time_s[a:b][ok]
+            if len(x) < 2:
+                continue
+            rising = bool(np.all(np.diff(x) >= 0) and np.allclose(x, np.round(x)))
+            span = float(np.ptp(x))
+            clock = span > 0 and bool(np.allclose(x, np.polyval(np.polyfit(t, x, 1), t), rtol=0, atol=1e-6 * span))
+            if not (rising or clock):
+                return True
+        return False
+
     def per_recording(self) -> list[np.ndarray]:
         """Indicator columns, one per recording (free offsets: sensors are zeroed anywhere)."""
         cols = []

@@ -227,18 +227,9 @@ def _column_settings(ctx: _Ctx, col: str) -> list[Setting]:
 MIN_COLUMN_SHARE = 0.5
 
 
-def _signal(v: np.ndarray) -> bool:
-    """Whether a column's values vary and are no counter (row index, day number): a physical signal."""
-    ok = np.isfinite(v)
-    if not ok.any() or np.nanstd(v) == 0:
-        return False
-    d = np.diff(v[ok])
-    return not (np.all(d >= 0) and np.allclose(v[ok], np.round(v[ok])))
-
-
 def _usable_columns(ctx: _Ctx) -> list[str]:
     return [col for col, v in ctx.stack.extras.items()
-            if np.isfinite(v).sum() >= MIN_COLUMN_SHARE * len(v) and _signal(v)]
+            if np.isfinite(v).sum() >= MIN_COLUMN_SHARE * len(v) and ctx.stack.is_signal(col)]
 
 
 def partial_columns(stack: Stack) -> list[str]:
@@ -246,7 +237,7 @@ def partial_columns(stack: Stack) -> list[str]:
     out = []
     for col, v in stack.extras.items():
         share = float(np.isfinite(v).mean()) if len(v) else 0.0
-        if not 0 < share < MIN_COLUMN_SHARE or not _signal(v):
+        if not 0 < share < MIN_COLUMN_SHARE or not stack.is_signal(col):
             continue
         have = [stack.labels[r] for r, (a, b) in enumerate(stack.bounds) if np.isfinite(v[a:b]).any()]
         out.append(f"column {col} is recorded in {len(have)} of {len(stack.bounds)} recordings ({100 * share:.0f} % "

@@ -402,7 +402,7 @@ def candidate_signals(stack: Stack, speed_factors: Sequence[str], current_factor
     if len(current_factors) > 1:
         out["sum of currents^2"] = ("derived", _deviation(stack, sum(stack.raw[f] for f in current_factors)))
     for col, v in stack.extras.items():
-        if np.isfinite(v).sum() > 0.5 * len(v) and np.nanstd(v) > 0:
+        if np.isfinite(v).sum() > 0.5 * len(v) and stack.is_signal(col):
             out[col] = ("recorded", _deviation(stack, v))
     return out
 
