@@ -379,7 +379,7 @@ def _read_recording(path: Path, *, factor_columns: Mapping[str, str], displaceme
                                  f"{did_you_mean(name, header)}; columns are: {', '.join(header)}")
         return col[name]
 
-    t_idx = need(time_column, "time in seconds or ISO 8601; or give the row period if the file has none") \
+    t_idx = need(time_column, "time in seconds or ISO 8601; a file without one needs its row period: --period-s S") \
         if time_column is not None else None
     f_idx = {f: need(c, f"factor {f}") for f, c in factor_columns.items()}
     d_idx: dict[str, int] = {}

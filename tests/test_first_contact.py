@@ -120,7 +120,30 @@ def test_a_recording_too_short_to_hold_out_anything_is_refused_not_reassured(ran
     assert "give 0 held-out block(s); a diagnosis judges on at least 3" in err
     assert main(["estimate", "--profile", "sim-vmc", str(short)]) == 0
     out = capsys.readouterr().out
-    assert "no displacement to take a share of (1 windows)" in out and "inf %" not in out
+    assert "no displacement to take a share of (1 windows)" in out
+    assert "inf %" not in out
+
+
+def test_a_new_users_slips_get_one_line_that_says_what_to_do(random_spindle, tmp_path, capsys):
+    from tests_paths import ROOT
+
+    # another machine's model: one line saying so first, not eleven lines of factors
+    assert main(["estimate", "--profile", str(ROOT / "bench" / "profiles" / "ace-lathe.toml"), "--model",
+                 str(ROOT / "profiles" / "sim-vmc.model.toml"), str(random_spindle)]) != 0
+    first = capsys.readouterr().err.splitlines()[0]
+    assert re.search(r'sim-vmc.model.toml: a model of machine "sim-vmc", but profile .*ace-lathe.toml is machine '
+                     r'"[^"]+" \(\d+ of its \d+ factors are not in the profile\)', first), first
+    # --split-by with the column's name in another case
+    days = _two_days(random_spindle, tmp_path / "days.csv")
+    assert main(["diagnose", "--profile", "sim-vmc", str(days), "--split-by", "Day"]) == 2
+    assert 'no recording has a numeric column "Day" (did you mean "day"?)' in capsys.readouterr().err
+    # a file without a time column: the option that reads it is named
+    lines = random_spindle.read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if not ln.startswith("#"))
+    untimed = tmp_path / "untimed.csv"
+    untimed.write_text("\n".join(",".join(ln.split(",")[1:]) for ln in lines[k:]) + "\n")
+    assert main(["estimate", "--profile", "sim-vmc", str(untimed)]) != 0
+    assert 'a file without one needs its row period: --period-s S' in capsys.readouterr().err
 
 
 def test_files_of_one_name_in_two_folders_are_told_apart_wherever_the_report_names_a_recording(random_spindle,

@@ -111,7 +111,9 @@ def split_those_with(recs: list[Recording], column: str, others: Sequence[Record
     """
     if not any(column in r.extras for r in [*recs, *others]):
         have = "; ".join(f"{r.source}: {', '.join(sorted(r.extras)) or 'none'}" for r in [*recs, *others])
-        raise UsageError(f'--split-by: no recording has a numeric column "{column}" (numeric extra columns: {have})')
+        known = {k for r in [*recs, *others] for k in r.extras}
+        raise UsageError(f'--split-by: no recording has a numeric column "{column}"{did_you_mean(column, known)} '
+                         f"(numeric extra columns: {have})")
     return [part for r in recs for part in (split_by(r, column) if column in r.extras else [r])]
 
 
@@ -163,6 +165,13 @@ def load_model_for(profile: Profile, path: str | Path | None) -> tuple[ThermalMo
     for a in model.axes:
         if a not in profile.axes:
             problems.append(f"{path}: axis {a} is not among the profile's axes ({', '.join(profile.axes)})")
+    foreign = [f for f in model.factors if f not in profile.factor_names]
+    if foreign and len(foreign) * 2 >= len(model.factors) and model.machine and model.machine != profile.name:
+        # most of its factors unknown: another machine's model, said first (then the lines that show it)
+        problems.insert(0, f'{path}: a model of machine "{model.machine}", but profile {profile.path} is machine '
+                           f'"{profile.name}" ({len(foreign)} of its {len(model.factors)} factors are not in the '
+                           "profile): expected the model identified with this profile (--model, or the profile's "
+                           "model file)")
     if problems:
         raise ModelError("\n".join(problems))
     return model, path
