@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -10,6 +11,7 @@ import numpy as np
 from gateway.diagnose.api import Diagnosis, Validation
 from gateway.diagnose.locate import spectrum
 from gateway.diagnose.report import written_terms
+from gateway.replay import INITIAL_FIT_S
 
 
 def _legend(grid, **kw) -> None:
@@ -80,7 +82,9 @@ def write_figures(d: Diagnosis, out_dir: Path, *, validations: Sequence[Validati
     _legend(grid, fontsize=7, loc="best")
     grid[0, 0].set_title("measured vs the identified and the written model; shaded: residual outside its noise band; "
                          "violet: sensor steps" + tail, fontsize=9)
-    grid[-1, 0].set_xlabel("time (h, recordings end to end: " + ", ".join(_labels(d)) + ")")
+    # wrapped: a dozen recordings' names made a label wider than the figure, cut off at both ends
+    grid[-1, 0].set_xlabel(textwrap.fill("time (h), recordings end to end: " + ", ".join(_labels(d)), 150),
+                           fontsize=8)
     fig.tight_layout()
     fig.savefig(out_dir / "fit.png", dpi=100)
     plt.close(fig)
@@ -122,10 +126,10 @@ def write_figures(d: Diagnosis, out_dir: Path, *, validations: Sequence[Validati
         f = d.findings[a]
         for label, r, color in (("before", f.residual, "C0"), ("after", f.residual - after[a], "C3")):
             fr, p = spectrum(st, r)
-            if fr.size > 1:
-                ax.loglog(1.0 / fr[1:], p[1:], color=color, lw=0.8, label=label)
-        for ln in f.lines:
-            ax.axvline(ln.period_h, color="C2", lw=0.8, ls="--")
+            if fr.size > 1:  # after dashed: where nothing was removed it lies on before, which still shows
+                ax.loglog(1.0 / fr[1:], p[1:], color=color, lw=0.8, label=label, ls="--" if label == "after" else "-")
+        for n, ln in enumerate(f.lines):
+            ax.axvline(ln.period_h, color="C2", lw=0.8, ls=":", label="spectral line found" if n == 0 else None)
         ax.set_xlabel("period (h)")
         ax.set_title(f"{a} residual spectrum", fontsize=9)
     grid[0, 0].set_ylabel("power (um^2)")
@@ -139,9 +143,12 @@ def write_figures(d: Diagnosis, out_dir: Path, *, validations: Sequence[Validati
         fig, grid = plt.subplots(len(axes), 1, figsize=(11, 2.2 * len(axes)), sharex=True, squeeze=False)
         for k, a in enumerate(axes):
             ax = grid[k, 0]
-            for t in terms.get(a, []):
-                if not t.trial.hypothesis.artefact:
-                    ax.plot(h, t.contribution, lw=1.0, label=t.trial.hypothesis.key)
+            mine = [t for t in terms.get(a, []) if not t.trial.hypothesis.artefact]
+            for t in mine:  # named as the report names it
+                ax.plot(h, t.contribution, lw=1.0, label=t.trial.hypothesis.title)
+            if not mine:
+                ax.text(0.5, 0.5, f"no accepted term acts on {a}", transform=ax.transAxes, ha="center",
+                        va="center", fontsize=8, color="0.4")
             ax.axhline(0, color="k", lw=0.5)
             _separators(ax, d, h)
             ax.set_ylabel(f"{a} (um)")
@@ -167,6 +174,9 @@ def _validation_figure(plt, validations: Sequence[Validation], out_dir: Path, ta
         for r, a in enumerate(axes):
             ax = grid[r, c]
             i = axes.index(a)
+            if v.settings.get("initial_state") == "fit":  # the hour its initial state is fitted on
+                ax.axvspan(0.0, min(INITIAL_FIT_S / 3600.0, float(h[-1]) if h.size else 0.0), color="0.9", lw=0,
+                           label="initial state fitted here")
             ax.plot(h, v.after.measured[i], color="0.3", lw=0.8, label="measured")
             ax.plot(h, v.before.estimated[i], color="C0", lw=1.0, label="identified")
             ax.plot(h, v.after.estimated[i], color="C3", lw=1.0, ls="--", label="written")
@@ -175,7 +185,7 @@ def _validation_figure(plt, validations: Sequence[Validation], out_dir: Path, ta
             if c == 0:
                 ax.set_ylabel(f"{a} (um)")
             if r == len(axes) - 1:
-                ax.set_xlabel("h")
+                ax.set_xlabel("hours from its start")
     _legend(grid, fontsize=6)
     fig.suptitle("validation: recordings never fitted, as cncgw estimate gives them" + tail, fontsize=9)
     fig.tight_layout()
