@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from gateway.diagnose.api import Diagnosis, Validation
+from gateway.diagnose.hypotheses import Setting
 from gateway.diagnose.refit import identification_length_s
 from gateway.diagnose.search import Term, Trial
 from gateway.recording import split_file
@@ -34,13 +35,23 @@ def _params(params: Sequence[tuple[str, object]], sd: Mapping[str, float]) -> st
     return ", ".join(out)
 
 
-def _gains(gains: np.ndarray, sd: np.ndarray, labels: Sequence[str]) -> str:
+def _gains(gains: np.ndarray, sd: np.ndarray, labels: Sequence[str], units: Sequence[str] = ()) -> str:
+    """``label: +g +/- sd um/unit; ...``: a gain is micrometres per unit of its input (at steady state)."""
     parts = []
     for k, g in enumerate(gains):
         s = sd[k] if k < len(sd) else math.nan
         lab = labels[k] if k < len(labels) and labels[k] else f"gain {k + 1}"
-        parts.append(f"{lab}: {g:+.4g}" + (f" +/- {s:.2g}" if math.isfinite(s) else ""))
+        unit = f" um/{units[k]}" if k < len(units) and units[k] and units[k] != "1" else (
+            " um" if k < len(units) and units[k] == "1" else "")
+        parts.append(f"{lab}: {g:+.4g}" + (f" +/- {s:.2g}" if math.isfinite(s) else "") + unit)
     return "; ".join(parts)
+
+
+def _input_units(d: Diagnosis, setting: Setting) -> list[str]:
+    """The unit of each component's input: a factor's (the model's units), a derived input's own."""
+    derived = {i.name: i.unit for i in setting.chain}
+    return [derived.get(c.parts[0].input, d.model.units.get(c.parts[0].input, "")) if c.parts else ""
+            for c in setting.components]
 
 
 def to_json(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = "",
@@ -284,8 +295,9 @@ def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = 
             gains = fin.gains if fin is not None else e.gains
             setting = fin.setting if fin is not None else e.setting
             labels = [c.label for c in setting.components] if setting else []
+            units = _input_units(d, setting) if setting else []
             L.append(f"- {a}: {_params(e.setting.params, e.params_sd) if e.setting else ''}; "
-                     f"{_gains(gains, e.gains_sd, labels)}; held-out error down {100 * e.gain:.0f} %, "
+                     f"{_gains(gains, e.gains_sd, labels, units)}; held-out error down {100 * e.gain:.0f} %, "
                      f"contribution {e.effect_rms_um:.3g} um RMS")
         L.append("")
     if d.artefacts:
@@ -311,7 +323,7 @@ def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = 
                 f"{s.size_um:+.3g} um at {s.time_h:.2f} h in {s.recording}" for s in f.steps), ""]
         if f.change_points:
             L += ["Change points of the residual's trend: " + "; ".join(
-                f"{c.time_h:.1f} h ({c.slope_before_um_h:+.2g} -> {c.slope_after_um_h:+.2g} um/h)"
+                f"{c.time_h:.1f} h into {c.recording} ({c.slope_before_um_h:+.2g} -> {c.slope_after_um_h:+.2g} um/h)"
                 for c in f.change_points), ""]
         if f.states:
             L += ["Growth of the residual by operating state: " + "; ".join(
@@ -348,7 +360,10 @@ def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = 
     if figures:
         L += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     if model_file:
-        L += ["## Extended model", "", f"Written to `{model_file}`: `{estimate_cmd} RECORDING` runs it."]
+        # "extended" only where something was added: a re-identified model alone is the same structure refitted
+        heading = "## Extended model" if d.extended.inputs or any(not t.hypothesis.artefact
+                                                                   for t in d.result.accepted) else "## Model written"
+        L += [heading, "", f"Written to `{model_file}`: `{estimate_cmd} RECORDING` runs it."]
         if d.extended.inputs:
             L += ["", "Derived inputs:", ""] + [f"- `{i.name}`: {i.describe()}" + (f" ({i.note})" if i.note else "")
                                               for i in d.extended.inputs]
