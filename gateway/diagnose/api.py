@@ -501,7 +501,9 @@ def _to_decide(d: Diagnosis, t: Trial, tried: int, k: int, block_h: float) -> st
     head = (f"; it removes {100 * e.gain:.0f} % of {e.axis}'s held-out squared error, but {tried} hypotheses were "
             "tried on these blocks and chance must be ruled out for all of them")
     if m is None:
-        return head + ": no amount of recordings like these would decide it"
+        return head + (": no amount of recordings like these would decide it (its blocks do not improve consistently "
+                       "enough); recordings where it acts differently from the model's factors (other speeds, other "
+                       "schedules) might")
     hours = m * block_h
     # the blocks' length is what makes their sums consistent (more recording in as many blocks is another test):
     # --blocks asks for about that many, each recording gets a few at least, so the option scales with the count

@@ -11,6 +11,7 @@ import numpy as np
 
 from gateway.diagnose.api import Diagnosis, Validation
 from gateway.diagnose.hypotheses import Setting
+from gateway.diagnose.locate import LAGS_S
 from gateway.diagnose.refit import identification_length_s
 from gateway.diagnose.search import Term, Trial
 from gateway.recording import split_file
@@ -332,10 +333,12 @@ def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = 
             L += ["Spectral lines: " + "; ".join(f"{ln.period_h:.3g} h, amplitude {ln.amplitude_um:.2g} um "
                                                  f"({ln.ratio:.0f} x background)" for ln in f.lines), ""]
         if f.correlations:
-            L += ["Correlations (largest over lags; bound: coloured-signal variance, Bonferroni over signals and lags; "
-                  "the naive 1.96/sqrt(N) bound for comparison):", "",
+            L += ["Correlations (largest over lags: the signal through a first-order lag of time constant 0 to "
+                  f"{max(LAGS_S) / 3600:g} h, '>=' where the longest tried was best; bound: coloured-signal variance, "
+                  "Bonferroni over signals and lags; the naive 1.96/sqrt(N) bound for comparison):", "",
                   "| signal | kind | lag | r | bound | naive bound | significant |", "|---|---|---|---|---|---|---|"]
-            L += [f"| {c.signal} | {c.kind} | {c.lag_s / 60:.0f} min | {c.r:+.2f} | {c.bound:.2f} "
+            L += [f"| {c.signal} | {c.kind} | {'>= ' if c.lag_s >= max(LAGS_S) else ''}{c.lag_s / 60:.0f} min "
+                  f"| {c.r:+.2f} | {c.bound:.2f} "
                   f"| {c.naive_bound:.3f} | {'yes' if c.significant else 'no'} |" for c in f.correlations[:10]]
             L.append("")
 
