@@ -189,7 +189,8 @@ def test_validation_starts_from_the_day_before_or_from_a_fitted_state(plant_data
     run4, run5 = (replace(r, source=f"days.csv[day={k}]") for k, r in ((4, days[3]), (5, after_day4)))
     (split,) = validate(d, [run5], earlier=[run4])
     assert split.label == "day 5"
-    assert split.start == "at rest (it starts with the machine in equilibrium)"
+    assert split.start == ("at rest (it starts with the machine in equilibrium); a run of a --split-by file is never "
+                           "carried on from the one before it (--history FILE carries)")
     assert "history" not in split.settings
     # nor does a whole file carry into a run of a split one, or a run into the file after it
     (after_run,) = validate(d, [after_day4], earlier=[run4])

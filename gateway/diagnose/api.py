@@ -585,6 +585,9 @@ def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence
                 start = f"estimated from its first hour: it starts warm ({warm})"
             else:
                 start = "at rest (it starts with the machine in equilibrium)"
+            if split_part(rec.source):  # a user whose files follow one another saw no reason it was not carried
+                start += ("; a run of a --split-by file is never carried on from the one before it (--history FILE "
+                          "carries)")
         kw = {"gap_policy": gap_policy, "history": hist, "initial_state": initial_state}
         before = estimate(d.model, rec, **kw)
         after = estimate(d.extended, rec, **kw)
