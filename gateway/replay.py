@@ -361,7 +361,8 @@ def starts_warm(model: ThermalModel, rec: Recording, *, gap_policy: str = "hold"
         span = max(abs(float(lo)), abs(float(hi)))
         if span > 0 and abs(first) > 0.1 * span:
             unit = f" {model.units[f]}" if model.units.get(f) else ""
-            return f"{f} is {first:+.4g}{unit} from its rest level at the first window"
+            side = "warm" if first > 0 else "colder than at rest"
+            return f"{f} is {first:+.4g}{unit} from its rest level at the first window: {side}"
     e = estimate(model, rec, gap_policy=gap_policy)
     rel = e.time_s - e.time_s[0]
     hour = rel <= 3600.0

@@ -203,7 +203,7 @@ def test_validation_starts_from_the_day_before_or_from_a_fitted_state(plant_data
     warm = after_day4.slice(600, 1440)  # starts mid-work, nothing before it
     (fitted,) = validate(d, [warm])
     assert fitted.settings["initial_state"] == "fit"
-    assert "starts warm" in fitted.start
+    assert "it does not start at rest (" in fitted.start
     assert any("initial state estimated from the first 1 h" in n for n in fitted.after.notes)
 
 
@@ -378,13 +378,13 @@ def test_estimate_says_when_a_recording_it_starts_at_rest_seems_to_start_warm(tm
     write_recording(calm, time_s=rest.time_s, columns={**rest.factors, "z_um": rest.displacement["z"]})
     assert main(["estimate", "--profile", str(profile), "--model", str(model), str(path), str(calm), "--json"]) == 0
     notes = {e["recording"]: e["notes"] for e in json.loads(capsys.readouterr().out)}
-    (said,) = [n for n in notes[str(path)] if "seems to start warm" in n]
+    (said,) = [n for n in notes[str(path)] if "seems not to start at rest" in n]
     assert said.endswith("--initial-state fit estimates its initial state from its first hour")
-    assert not any("seems to start warm" in n for n in notes[str(calm)])
+    assert not any("seems not to start at rest" in n for n in notes[str(calm)])
     assert main(["estimate", "--profile", str(profile), "--model", str(model), str(path), "--json",
                  "--initial-state", "fit"]) == 0
     (fitted,) = json.loads(capsys.readouterr().out)
-    assert not any("seems to start warm" in n for n in fitted["notes"])
+    assert not any("seems not to start at rest" in n for n in fitted["notes"])
 
 
 def test_a_recording_cut_mid_work_is_estimated_from_the_state_its_first_hour_shows(tmp_path, sim_csv_dir, capsys):

@@ -137,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
             # --validate estimates such a one from its first hour): said, with the option that does
             warm = starts_warm(model, r, gap_policy=args.gap_policy)
             if warm:
-                e = dataclasses.replace(e, notes=(*e.notes, f"it seems to start warm ({warm}), and is estimated "
+                e = dataclasses.replace(e, notes=(*e.notes, f"it seems not to start at rest ({warm}), and is estimated "
                                                             "from rest: --initial-state fit estimates its initial "
                                                             "state from its first hour"))
         ests.append(e)

@@ -582,7 +582,7 @@ def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence
             warm = starts_warm(d.extended, rec, gap_policy=gap_policy)
             if warm:
                 initial_state = "fit"
-                start = f"estimated from its first hour: it starts warm ({warm})"
+                start = f"estimated from its first hour: it does not start at rest ({warm})"
             else:
                 start = "at rest (it starts with the machine in equilibrium)"
             if split_part(rec.source):  # a user whose files follow one another saw no reason it was not carried
