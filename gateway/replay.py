@@ -263,7 +263,7 @@ def _fit_initial_state(model: ThermalModel, period_s: float, time_s: np.ndarray,
     return out, (f"initial state estimated from the first {INITIAL_FIT_S / 3600:g} h of measured displacement on "
                  f"{', '.join(fitted)}: the state the model's inputs leave when held before the start ({spans} "
                  f"back, each up to {INITIAL_FIT_LEVEL:g}x its largest in the experiments or here), fitted over the "
-                 "axes together: the recording starts warm; that hour scores the fit, not the model")
+                 "axes together: the recording does not start at rest; that hour scores the fit, not the model")
 
 
 def extrapolation_notes(model: ThermalModel, du: np.ndarray, *, margin: float = 1.2) -> list[str]:
