@@ -366,16 +366,24 @@ def starts_warm(model: ThermalModel, rec: Recording, *, gap_policy: str = "hold"
     e = estimate(model, rec, gap_policy=gap_policy)
     rel = e.time_s - e.time_s[0]
     hour = rel <= 3600.0
+    # ... and the idle windows it starts with, when it starts idle: a machine cooling before its first job moves
+    # there while the model predicts nothing, though over the whole hour the job's own heat hides it (the bundled
+    # production day cut at noon: z 10.9 um over 45 idle minutes, unflagged, estimated 33 um RMS off from rest)
+    du = prepare(rec, factors=model.factors, axes=model.axes, initial="first", reference=model.reference,
+                 gap_policy=gap_policy, inputs=model.inputs).du
+    idle = np.zeros_like(hour)
+    idle[: _lead_in(du - du[:, :1])] = True
     for i, a in enumerate(model.axes):
         y = e.measured[i]
-        ok = hour & np.isfinite(y)
-        if ok.sum() < 5:
-            continue
         d = np.diff(y[np.isfinite(y)])
         sigma = float(np.median(np.abs(d - np.median(d)))) / 0.6745 / math.sqrt(2) if d.size else 0.0
-        moved = float(np.ptp(y[ok]))
-        predicted = float(np.ptp(e.estimated[i][ok]))
-        if moved > max(6.0 * sigma, 3.0 * predicted, 1e-9):
-            return (f"axis {a} moves {moved:.3g} um in the first hour where the model, started at rest, predicts "
-                    f"{predicted:.3g} um")
+        for span, when in ((hour, "in the first hour"), (hour & idle, "while it rests at the start")):
+            ok = span & np.isfinite(y)
+            if ok.sum() < (5 if when == "in the first hour" else 10):
+                continue
+            moved = float(np.ptp(y[ok]))
+            predicted = float(np.ptp(e.estimated[i][ok]))
+            if moved > max(6.0 * sigma, 3.0 * predicted, 1e-9):
+                return (f"axis {a} moves {moved:.3g} um {when} where the model, started at rest, predicts "
+                        f"{predicted if predicted >= 5e-4 else 0.0:.3g} um")
     return ""
