@@ -157,7 +157,7 @@ def estimate(
     check = check_coverage(model.coverage, du, model.factors, model.units) if model.coverage is not None else None
     notes = list(prep.notes) + (check.notes(rec.period_s) if check is not None else extrapolation_notes(model, du))
     if history is not None:
-        notes.append(f"started in the state {history.source} left ({len(history)} windows before this recording)")
+        notes.append(f"started in the state {history.source} left (its {len(history)} windows run first)")
     if initial_state == "fit":
         est, text = _fit_initial_state(model, rec.period_s, time_s, est, measured, du)
         notes.append(text)
@@ -258,12 +258,19 @@ def _fit_initial_state(model: ThermalModel, period_s: float, time_s: np.ndarray,
               np.r_[np.ones(k), np.full(len(model.axes), np.inf)] * scale)
     w = scipy.optimize.lsq_linear(A / scale, b, bounds=bounds).x[:k] / scale[:k]
     out = est + sum((wk * r for wk, r in zip(w, responses, strict=True)), np.zeros_like(est))
+    moved = float(np.max(np.abs(out - est))) if out.size else 0.0
+    if moved < 1e-3:  # no heat history fits the first hour better than none (a cold start: heat only adds)
+        return est.copy(), (f"initial state: no state a heat history of the inputs leaves fits the first "
+                            f"{INITIAL_FIT_S / 3600:g} h better than rest; started at rest")
     spans = ", ".join(f"{newer:g}-{older:g} h" for newer, older in zip((0.0, *INITIAL_HISTORY_H[:-1]),
                                                                        INITIAL_HISTORY_H, strict=True))
+    together = ", fitted over the axes together" if len(fitted) > 1 else ""
+    scored = ("that hour scores the fit, not the model" if float(rel[-1]) > INITIAL_FIT_S else
+              "the whole recording lies in that hour: its figures score the fit, not the model")
     return out, (f"initial state estimated from the first {INITIAL_FIT_S / 3600:g} h of measured displacement on "
                  f"{', '.join(fitted)}: the state the model's inputs leave when held before the start ({spans} "
-                 f"back, each up to {INITIAL_FIT_LEVEL:g}x its largest in the experiments or here), fitted over the "
-                 "axes together: the recording does not start at rest; that hour scores the fit, not the model")
+                 f"back, each up to {INITIAL_FIT_LEVEL:g}x its largest in the experiments or here){together}: the "
+                 f"recording does not start at rest; {scored}")
 
 
 def extrapolation_notes(model: ThermalModel, du: np.ndarray, *, margin: float = 1.2) -> list[str]:

@@ -144,6 +144,20 @@ def test_a_new_users_slips_get_one_line_that_says_what_to_do(random_spindle, tmp
     untimed.write_text("\n".join(",".join(ln.split(",")[1:]) for ln in lines[k:]) + "\n")
     assert main(["estimate", "--profile", "sim-vmc", str(untimed)]) != 0
     assert 'a file without one needs its row period: --period-s S' in capsys.readouterr().err
+    # --split-by a measurement (it changes in every row) rather than a run label
+    body = [ln for ln in lines[k + 1:] if ln and not ln.startswith("#")]
+    wobbly = tmp_path / "wobbly.csv"
+    wobbly.write_text("\n".join([lines[k] + ",hall_c", *(f"{ln},{20 + 0.01 * i:.2f}" for i, ln in enumerate(body))])
+                      + "\n")
+    assert main(["estimate", "--profile", "sim-vmc", str(wobbly), "--split-by", "hall_c"]) == 2
+    assert (f"--split-by hall_c: {len(body)} runs, {len(body)} of them under 10 rows: the column changes value in "
+            "most rows") in capsys.readouterr().err
+    # a validation recording of one row
+    one = tmp_path / "one.csv"
+    one.write_text("\n".join(lines[: k + 2]) + "\n")
+    assert main(["diagnose", "--profile", "sim-vmc", str(random_spindle), "--validate", str(one)]) == 2
+    assert f"--validate {one}: 1 window(s) with measured displacement: a validation needs at least 10" in \
+        capsys.readouterr().err
 
 
 def test_files_of_one_name_in_two_folders_are_told_apart_wherever_the_report_names_a_recording(random_spindle,

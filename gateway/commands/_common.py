@@ -84,6 +84,10 @@ def add_recording_options(p: argparse.ArgumentParser) -> None:
                         "the machine idle at the reference state; gaps are reported either way")
 
 
+#: ``--split-by`` refuses a column that makes most runs shorter than this (a measurement, not a run label)
+MIN_RUN_ROWS = 10
+
+
 def split_by(rec: Recording, column: str) -> list[Recording]:
     """The runs of ``rec``: a new one wherever ``column`` changes value (missing cells continue the run)."""
     values = rec.extras.get(column)
@@ -99,6 +103,11 @@ def split_by(rec: Recording, column: str) -> list[Recording]:
         rows = np.flatnonzero(rec.present[a:b])
         if rows.size:
             runs.append((a + int(rows[0]), a + int(rows[-1]) + 1))
+    short = sum(b - a < MIN_RUN_ROWS for a, b in runs)
+    if len(runs) > 2 and 2 * short > len(runs):  # a measurement, not a label (--split-by Ambient: 1550 runs)
+        raise UsageError(f'{rec.source}: --split-by {column}: {len(runs)} runs, {short} of them under {MIN_RUN_ROWS} '
+                         f"rows: the column changes value in most rows; expected one that labels runs (a day number, "
+                         "a run id)")
     # the value as written (a date 20240105 stays whole, where :g made every run 2.02401e+07)
     return [replace(rec.slice(a, b), source=f"{rec.source}[{column}={held[a]:.15g}]") for a, b in runs]
 

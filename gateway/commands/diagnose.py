@@ -7,6 +7,8 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from gateway import plotting
 from gateway.commands._common import (
     add_recording_options,
@@ -122,8 +124,14 @@ def run(args: argparse.Namespace) -> int:
     options = Options(alpha=args.alpha, min_effect_share=args.min_effect, min_gain=args.min_gain,
                       blocks=_check_blocks(args.blocks, recs), reidentify=not args.no_reidentify,
                       use_signals=tuple(args.use_signal))
-    # a validation recording that is also diagnosed would be scored on data the model was fitted on
+    # a validation recording that is also diagnosed would be scored on data the model was fitted on; one of a
+    # few windows would be "RMS 0 um ... at rest"
     for v in vrecs:
+        measured = int(np.isfinite(np.vstack(list(v.displacement.values()))).any(axis=0).sum()) \
+            if v.displacement else 0
+        if measured < MIN_VALIDATION_WINDOWS:
+            raise UsageError(f"--validate {v.source}: {measured} window(s) with measured displacement: a validation "
+                             f"needs at least {MIN_VALIDATION_WINDOWS} to say anything")
         same = fitted.get(v.fingerprint(model.factors))
         if same is not None:
             raise UsageError(f"--validate {v.source}: the same data as {same}, which is diagnosed: validation takes "
@@ -190,6 +198,10 @@ def _check_signals(columns: list[str], recs: list) -> None:
         if not any(c in r.extras for r in recs):
             raise UsageError(f"--use-signal {c}: no recording has a column {c!r} beside the profile's factors and "
                              f"displacement (recorded columns: {', '.join(have) or 'none'})")
+
+
+#: a --validate recording with fewer windows of measured displacement is refused
+MIN_VALIDATION_WINDOWS = 10
 
 
 def _check_blocks(given: int | None, recs: list) -> int:
