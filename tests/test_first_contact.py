@@ -144,6 +144,11 @@ def test_a_new_users_slips_get_one_line_that_says_what_to_do(random_spindle, tmp
     untimed.write_text("\n".join(",".join(ln.split(",")[1:]) for ln in lines[k:]) + "\n")
     assert main(["estimate", "--profile", "sim-vmc", str(untimed)]) != 0
     assert 'a file without one needs its row period: --period-s S' in capsys.readouterr().err
+    # a history of several runs: which one ran just before is the user's to say
+    before = tmp_path / "before.csv"
+    before.write_text(days.read_text())
+    assert main(["estimate", "--profile", "sim-vmc", str(days), "--split-by", "day", "--history", str(before)]) == 2
+    assert f"--history {before}: 2 runs of --split-by day (" in capsys.readouterr().err
     # --split-by a measurement (it changes in every row) rather than a run label
     body = [ln for ln in lines[k + 1:] if ln and not ln.startswith("#")]
     wobbly = tmp_path / "wobbly.csv"

@@ -16,7 +16,7 @@ from gateway.errors import GatewayError, ModelError, UsageError, did_you_mean
 from gateway.model import ThermalModel, load_model
 from gateway.model.inputs import hold_missing
 from gateway.profile import Profile
-from gateway.recording import Recording, read_for_profile
+from gateway.recording import Recording, read_for_profile, recording_name
 
 
 def plain(doc: str | None) -> str:
@@ -138,6 +138,25 @@ def read_recordings(paths: Sequence[str], profile: Profile, *, period_s: float |
                     require_displacement: bool) -> list[Recording]:
     return [read_for_profile(p, profile, period_s=period_s, require_displacement=require_displacement)
             for p in paths]
+
+
+def read_history(args: argparse.Namespace, profile: Profile) -> Recording | None:
+    """``--history FILE`` as one recording (None without it); a file of several ``--split-by`` runs is refused.
+
+    Such a file (days 1-12) ran as one machine history only if its runs followed one another: which run came just
+    before is for the user to give (a 12-day file taken whole made a day 14 27.7 um RMS off without a word).
+    """
+    if not args.history:
+        return None
+    (history,) = read_recordings([args.history], profile, period_s=args.period_s, require_displacement=False)
+    split = getattr(args, "split_by", None)
+    if split and split in history.extras:
+        runs = split_by(history, split)
+        if len(runs) > 1:
+            names = ", ".join(recording_name(r.source) for r in runs[:3]) + (", ..." if len(runs) > 3 else "")
+            raise UsageError(f"--history {args.history}: {len(runs)} runs of --split-by {split} ({names}): expected "
+                             "the one run that ran just before (a file of it alone)")
+    return history
 
 
 def profile_arg(profile: Profile) -> str:

@@ -17,6 +17,7 @@ from gateway.commands._common import (
     load_model_for,
     positive_float,
     progress_bar,
+    read_history,
     read_recordings,
     refuse_duplicates,
     split_those_with,
@@ -136,9 +137,7 @@ def run(args: argparse.Namespace) -> int:
         if same is not None:
             raise UsageError(f"--validate {v.source}: the same data as {same}, which is diagnosed: validation takes "
                              "recordings never used for fitting or selection (give it only after --validate)")
-    history = None
-    if args.history:
-        history = read_recordings([args.history], profile, period_s=args.period_s, require_displacement=False)[0]
+    history = read_history(args, profile)
     # what it tries as it goes (a bar on a terminal, nothing in a pipe): a diagnosis takes tens of seconds
     update, close = progress_bar(None, "diagnose")
     try:

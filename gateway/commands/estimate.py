@@ -15,6 +15,7 @@ from gateway.commands._common import (
     add_split_option,
     check_output,
     load_model_for,
+    read_history,
     read_recordings,
     refuse_writing_over_inputs,
     split_those_with,
@@ -55,7 +56,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="a recording that ended before the first one (the previous day): the model runs over it "
                         "first, so the recording starts in the state it left; with several recordings, each "
                         "one is the next one's history (read with --period-s, whose times each count from 0: "
-                        "taken to end one window before the recording starts)")
+                        "taken to end one window before the recording starts, so give one that ran just before it; "
+                        "with --split-by, a file of one run)")
     p.add_argument("--probes", metavar="PROBES",
                    help="a probe CSV (time, seq, x_um, y_um, z_um, sd_um): the estimate is the model updated by "
                         "the probes taken during each recording, with its 95 %% band; -o writes it with "
@@ -122,9 +124,7 @@ def run(args: argparse.Namespace) -> int:
     if args.split_by:
         recs = split_those_with(recs, args.split_by)
     paths = prediction_paths(args.output, [r.source for r in recs], force=args.force) if args.output else []
-    history = None
-    if args.history:
-        history = read_recordings([args.history], profile, period_s=args.period_s, require_displacement=False)[0]
+    history = read_history(args, profile)
     if args.probes:
         return _run_probed(args, profile, model, model_path, recs, history, paths)
     ests = []
