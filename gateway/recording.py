@@ -595,7 +595,7 @@ def read_for_profile(path: str | Path, profile: Profile, *, period_s: float | No
                      require_displacement: bool = True) -> Recording:
     """Read a recording laid out as ``profile`` says. ``period_s`` set means: the file has no time column."""
     rec = profile.recording
-    return read_recording(
+    out = read_recording(
         path,
         factor_columns={f.name: f.column for f in profile.factors},
         displacement_columns=dict(rec.displacement_columns),
@@ -603,6 +603,16 @@ def read_for_profile(path: str | Path, profile: Profile, *, period_s: float | No
         period_s=period_s if period_s is not None else rec.period_s,
         require_displacement=require_displacement,
     )
+    written = out.extras.get(rec.time_column) if period_s is not None and rec.time_column else None
+    if written is not None and np.isfinite(written).sum() > 2:
+        # the rows are timed by the option, the times written beside them only carried along: where they disagree
+        # every time constant found is off by their ratio (a new user's --period-s 30 on a file of minutes)
+        step = float(np.median(np.diff(written[np.isfinite(written)])))
+        if not abs(step - period_s) <= 0.01 * period_s:
+            raise RecordingError(f'{path}: its time column "{rec.time_column}" has rows {step:g} s apart, but '
+                                 f"--period-s {period_s:g} was given: expected the same period (drop --period-s to "
+                                 "time the rows by the column)")
+    return out
 
 
 # --------------------------------------------------------------------------------------------------------

@@ -262,6 +262,11 @@ def test_a_row_period_that_is_not_the_files_is_an_error_not_gaps(random_spindle,
     assert "[recording] period_s in the profile, or --period-s" in err
     # the file's own period reads it
     assert main(["estimate", "--profile", str(profile), "--period-s", "60", str(random_spindle)]) == 0
+    capsys.readouterr()
+    # another one is not taken over the times written in the file (every time constant would be off by 2)
+    assert main(["estimate", "--profile", str(profile), "--period-s", "30", str(random_spindle)]) == 4
+    assert (f'{random_spindle}: its time column "time_s" has rows 60 s apart, but --period-s 30 was given'
+            in capsys.readouterr().err)
 
 
 def _excel(text: str, sep: str = ";") -> bytes:
