@@ -389,13 +389,12 @@ def _read_recording(path: Path, *, factor_columns: Mapping[str, str], displaceme
         elif require_displacement:
             need(c, f"measured displacement {axis} in um")
         else:
-            # optional, but a column that is it with a unit in its name ("x_um (um)", "x_um [um]") would have been
-            # read as no measurement at all, without a word
-            dressed = [h for h in header if re.sub(r"\s*[(\[][^)\]]*[)\]]\s*$", "", h) == c]
+            # optional, but a column that is it with a unit in its name ("x_um (um)", "x_um [um]") or in other
+            # letters ("X_UM") would have been read as no measurement at all, without a word
+            dressed = [h for h in header if re.sub(r"\s*[(\[][^)\]]*[)\]]\s*$", "", h).lower() == c.lower()]
             if dressed:
                 raise RecordingError(f'{path}:{header_line}: column "{dressed[0]}" looks like the measured '
-                                     f'displacement {axis} ("{c}", in um) with a unit in its name: expected the name '
-                                     f'"{c}" alone')
+                                     f'displacement {axis} ("{c}", in um): expected the name "{c}" exactly')
     used = {i for i in (t_idx, *f_idx.values(), *d_idx.values()) if i is not None}
     extra_cols = [h for i, h in enumerate(header) if i not in used]
 
