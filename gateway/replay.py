@@ -384,9 +384,9 @@ def starts_warm(model: ThermalModel, rec: Recording, *, gap_policy: str = "hold"
         y = e.measured[i]
         d = np.diff(y[np.isfinite(y)])
         sigma = float(np.median(np.abs(d - np.median(d)))) / 0.6745 / math.sqrt(2) if d.size else 0.0
-        for span, when in ((hour, "in the first hour"), (hour & idle, "while it rests at the start")):
+        for span, when, least in ((hour, "in the first hour", 5), (hour & idle, "while it rests at the start", 10)):
             ok = span & np.isfinite(y)
-            if ok.sum() < (5 if when == "in the first hour" else 10):
+            if ok.sum() < least:
                 continue
             moved = float(np.ptp(y[ok]))
             predicted = float(np.ptp(e.estimated[i][ok]))

@@ -42,8 +42,8 @@ def _gains(gains: np.ndarray, sd: np.ndarray, labels: Sequence[str], units: Sequ
     for k, g in enumerate(gains):
         s = sd[k] if k < len(sd) else math.nan
         lab = labels[k] if k < len(labels) and labels[k] else f"gain {k + 1}"
-        unit = f" um/{units[k]}" if k < len(units) and units[k] and units[k] != "1" else (
-            " um" if k < len(units) and units[k] == "1" else "")
+        u = units[k] if k < len(units) else ""
+        unit = " um" if u == "1" else (f" um/{u}" if u else "")  # "1": a flag's gain is micrometres while it is on
         parts.append(f"{lab}: {g:+.4g}" + (f" +/- {s:.2g}" if math.isfinite(s) else "") + unit)
     return "; ".join(parts)
 
