@@ -383,15 +383,16 @@ def _read_recording(path: Path, *, factor_columns: Mapping[str, str], displaceme
         if time_column is not None else None
     f_idx = {f: need(c, f"factor {f}") for f, c in factor_columns.items()}
     d_idx: dict[str, int] = {}
+    used_names = {time_column, *factor_columns.values(), *displacement_columns.values()}
     for axis, c in displacement_columns.items():
         if c in col:
             d_idx[axis] = col[c]
         elif require_displacement:
             need(c, f"measured displacement {axis} in um")
         else:
-            # optional, but a column that is it with a unit in its name ("x_um (um)", "x_um [um]") or in other
-            # letters ("X_UM") would have been read as no measurement at all, without a word
-            dressed = [h for h in header if re.sub(r"\s*[(\[][^)\]]*[)\]]\s*$", "", h).lower() == c.lower()]
+            # optional, but a column that is it with more to its name ("x_um (um)", "x_um [um]", "x_um_um",
+            # "x_um_1") or in other letters ("X_UM") would have been read as no measurement at all, without a word
+            dressed = [h for h in header if h not in used_names and _words(h)[:len(_words(c))] == _words(c)]
             if dressed:
                 raise RecordingError(f'{path}:{header_line}: column "{dressed[0]}" looks like the measured '
                                      f'displacement {axis} ("{c}", in um): expected the name "{c}" exactly')
@@ -582,6 +583,11 @@ def _decimal_point(cell: str, path: Path, line: int, header: Sequence[str], i: i
                              "numbers such as 12,5): a thousands separator? expected a number such as 1000 or "
                              "12,5") from None
     return cell
+
+
+def _words(name: str) -> list[str]:
+    """A column name's words, in small letters: "X_um [um]" -> ["x", "um", "um"]."""
+    return [w for w in re.split(r"[^a-z0-9]+", name.lower()) if w]
 
 
 def _clip(cell: str, width: int = 40) -> str:

@@ -144,12 +144,15 @@ def test_other_nan_spellings_are_missing_and_huge_extra_numbers_are_kept_as_text
 def test_displacement_optional_when_not_required():
     rec = read("time_s,speed_rpm,i1_sq\n60,0,1\n", require_displacement=False)
     assert rec.displacement == {}
-    # ... but a column that is it with a unit in its name is not silently read as no measurement at all
-    for name in ("z_um (um)", "z_um [um]", "Z_UM"):
+    # ... but a column that is it with more to its name is not silently read as no measurement at all
+    for name in ("z_um (um)", "z_um [um]", "Z_UM", "z_um_um", "z-um.1"):
         with pytest.raises(RecordingError) as exc:
             read(f"time_s,speed_rpm,i1_sq,{name}\n60,0,1,0.5\n", require_displacement=False)
         assert str(exc.value) == (f'rec.csv:1: column "{name}" looks like the measured displacement z ("z_um", in um): '
                                   'expected the name "z_um" exactly')
+    # ... and only such a one: words that merely hold the name's letters are other columns
+    for name in ("xz_um", "z", "az_um_max", "z_mm"):
+        assert read(f"time_s,speed_rpm,i1_sq,{name}\n60,0,1,0.5\n", require_displacement=False).displacement == {}
 
 
 def test_write_read_round_trip_is_exact(tmp_path):
