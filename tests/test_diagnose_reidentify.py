@@ -119,6 +119,32 @@ def test_an_unfit_model_is_said_unfit_and_never_reassured(diagnosed):
     assert d.conclusions[:len(d.verdict())] == d.verdict()
 
 
+def test_a_day_cut_while_the_machine_is_warm_is_said_so_beside_the_verdict_it_spoils():
+    # every recording is started in equilibrium with its first window: a day cut in a pause after three hours of
+    # work cools where the model predicts nothing, and that alone made a good model "not fit for compensation"
+    exps = [_experiment(1000.0, start_h=9.0, seed=1, room=False), _experiment(500.0, start_h=14.0, seed=2, room=False),
+            _experiment(500.0, start_h=20.0, seed=3, alternating=True, room=False)]
+    days = [_day(d, seed=10 + d, room=False) for d in range(1, 4)]
+    base = identify(exps, factors=F, axes=("z",), units=dict(PLANT.units), machine="synthetic").model
+    assert days[2].factors["speed"][950] == 0  # a pause ...
+    assert days[2].factors["speed"][600:950].mean() > 1000  # ... after hours of work
+    d = diagnose(base, [*exps, days[0], days[1], days[2].slice(950, 1440)])
+    assert not d.adequacy.fit  # taken on every recording, as before: a room drifting early looks warm too
+    said = d.adequacy.lines()[1]
+    assert re.match(r"day3 \(axis z moves [\d.]+ um in the first hour where the model, started at rest, predicts "
+                    r"[\d.e+-]+ um\) seems not to start at rest; every recording is started in equilibrium with its "
+                    r"first window, so there the error is the start's as much as the model's; without it: on 2 "
+                    r"recording\(s\) it did not train on, the model stays within (\d+) % of the peak", said), said
+    assert int(re.search(r"stays within (\d+) %", said)[1]) <= 30, said
+    assert said in d.conclusions
+    (note,) = [n for n in d.notes if "not to start at rest" in n]
+    assert note.startswith("day3: it seems not to start at rest (axis z moves "), note
+    # the whole day starts at rest: nothing said, and the model is fit
+    whole = diagnose(base, [*exps, *days])
+    assert whole.adequacy.fit, whole.adequacy.lines()
+    assert not any("not to start at rest" in n for n in [*whole.notes, *whole.adequacy.lines()])
+
+
 def test_the_room_is_named_and_the_rewritten_model_predicts_a_fresh_day(plant_data, diagnosed):
     _, _, fresh, base = plant_data
     d = diagnosed

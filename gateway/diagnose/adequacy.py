@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -73,6 +73,11 @@ class Adequacy:
     axes: dict[str, AxisAdequacy]
     drift: dict[str, RestingDrift]
     training: bool = False  # no recording the model did not train on: judged on its own experiments
+    # unseen recordings that seem not to start at rest (label: why, :func:`gateway.replay.starts_warm`), and the
+    # verdict without them: the model is started in equilibrium with each recording's first window, so the
+    # error of one that starts warm is its start's as much as the model's
+    not_at_rest: dict[str, str] = field(default_factory=dict)
+    without: Adequacy | None = None
 
     @property
     def judged(self) -> bool:
@@ -87,6 +92,16 @@ class Adequacy:
     def unfit_axes(self) -> list[str]:
         return [a for a, x in self.axes.items() if not x.fit]
 
+    def summary(self) -> str:
+        """Where the model is fit, how far it stays within the peak, in one sentence (see :meth:`lines`)."""
+        # an axis whose peak is within the noise (probes of 0.3 um on a 1.7 um peak) is not judged by share
+        judged = [x for x in self.axes.values() if x.worst] or list(self.axes.values())
+        worst = max(judged, key=lambda x: x.max_error_pct_of_peak)
+        where = "it was identified on" if self.training else "it did not train on"
+        return (f"on {len(self.unseen)} recording(s) {where}, the model stays within "
+                f"{worst.max_error_pct_of_peak:.0f} % of the peak displacement (worst: axis {worst.axis} in "
+                f"{worst.worst}, max |error| {worst.max_abs_error_um:.3g} um of {worst.peak_um:.3g} um)")
+
     def lines(self) -> list[str]:
         """Plain sentences, the verdict first."""
         out = []
@@ -95,17 +110,25 @@ class Adequacy:
         if self.axes and not self.fit:
             why = "; ".join(f"axis {a}: {', '.join(x.reasons)}" for a, x in self.axes.items() if x.reasons)
             out.append(f"this model is not fit for compensation: {where}, {why}")
+            if self.not_at_rest and self.without is not None:
+                which = [f"{k} ({v})" for k, v in self.not_at_rest.items()]
+                several = len(which) > 1
+                which = (f"{', '.join(which[:-1])}{' and ' if several else ''}{which[-1]} "
+                         f"{'seem' if several else 'seems'} not to start at rest")
+                if self.without.fit:
+                    out.append(f"{which}; every recording is started in equilibrium with its first window, so there "
+                               "the error is the start's as much as the model's; without "
+                               f"{'them' if several else 'it'}: {self.without.summary()}: diagnose recordings that "
+                               "start at rest (whole days, or cut where the machine had rested)")
+                else:
+                    out.append(f"{which}, but without {'them' if several else 'it'} the model is not fit either (axes "
+                               f"{', '.join(self.without.unfit_axes)} on the other {len(self.without.unseen)})")
         elif not self.judged:
             out.append("the model's fitness for compensation cannot be judged: every recording given identified it "
                        "(there it fits); pass recordings it has not seen (production days with measured "
                        "displacement)")
         else:
-            # an axis whose peak is within the noise (probes of 0.3 um on a 1.7 um peak) is not judged by share
-            judged = [x for x in self.axes.values() if x.worst] or list(self.axes.values())
-            worst = max(judged, key=lambda x: x.max_error_pct_of_peak)
-            out.append(f"on {len(self.unseen)} recording(s) it did not train on, the model stays within "
-                       f"{worst.max_error_pct_of_peak:.0f} % of the peak displacement (worst: axis {worst.axis} in "
-                       f"{worst.worst}, max |error| {worst.max_abs_error_um:.3g} um of {worst.peak_um:.3g} um)")
+            out.append(self.summary())
         for d in self.drift.values():
             if d.drifting:
                 out.append(f"axis {d.axis}: the displacement drifts while every input rests and the model predicts no "
@@ -117,12 +140,17 @@ class Adequacy:
 
 
 def assess(stack: Stack, model: ThermalModel, sigma_um: dict[str, float],
-           artefacts_um: Mapping[str, np.ndarray] | None = None) -> Adequacy:
+           artefacts_um: Mapping[str, np.ndarray] | None = None, *,
+           not_at_rest: Mapping[int, str] | None = None) -> Adequacy:
     """Judge ``model`` (its prediction is ``stack.base``) before any hypothesis; ``sigma_um``: noise per axis.
 
     ``artefacts_um``: per axis, the measurement artefacts found (steps within one window: a sensor knocked or
     re-zeroed), every window of the stack; they are the sensor's, not the model's, and are taken out of the
     measurement before it is judged (the report lists them).
+
+    ``not_at_rest``: recordings (by index) that seem not to start at rest, and why. The verdict is still taken on
+    every recording (a room drifting in the first hour looks like a warm start too, and must not hide an unfit
+    model); where it finds the model unfit, it is also taken without them, and both are said.
     """
     y_all = stack.y.copy()
     for i, a in enumerate(stack.axes):
@@ -132,6 +160,24 @@ def assess(stack: Stack, model: ThermalModel, sigma_um: dict[str, float],
     training = not unseen  # nothing else given: judged on its own experiments (if even they fail, it is unfit)
     if training:
         unseen = list(range(len(stack.bounds)))
+    axes = _judge(stack, y_all, unseen, sigma_um)
+    drift = {a: resting_drift(stack, i, sigma_um.get(a, 0.0), y=y_all[i]) for i, a in enumerate(stack.axes)
+             if np.isfinite(stack.y[i]).any()}
+    out = Adequacy(unseen=tuple(stack.labels[r] for r in unseen), axes=axes, drift=drift, training=training)
+    warm = {r: why for r, why in (not_at_rest or {}).items() if r in unseen}
+    if warm and not out.fit and len(warm) < len(unseen):
+        rest = [r for r in unseen if r not in warm]
+        without = _judge(stack, y_all, rest, sigma_um)
+        if without:
+            out = replace(out, not_at_rest={stack.labels[r]: why for r, why in warm.items()},
+                          without=Adequacy(unseen=tuple(stack.labels[r] for r in rest), axes=without, drift={},
+                                           training=training))
+    return out
+
+
+def _judge(stack: Stack, y_all: np.ndarray, unseen: list[int], sigma_um: Mapping[str, float]
+           ) -> dict[str, AxisAdequacy]:
+    """Per axis, the model's errors on the recordings ``unseen`` (indices) and why it is unfit there (if so)."""
     axes: dict[str, AxisAdequacy] = {}
     for i, a in enumerate(stack.axes):
         parts = []  # (recording, error, measured, predicted) per unseen recording, aligned as estimate aligns
@@ -180,10 +226,7 @@ def assess(stack: Stack, model: ThermalModel, sigma_um: dict[str, float],
                           max_error_pct_of_peak=w.max_error_pct_of_peak)
         axes[a] = AxisAdequacy(**asdict(fig), predicted_peak_um=predicted, displacement_rms_um=disp_rms,
                                worst=worst[0] if worst else "", reasons=tuple(reasons))
-    drift = {a: resting_drift(stack, i, sigma_um.get(a, 0.0), y=y_all[i]) for i, a in enumerate(stack.axes)
-             if np.isfinite(stack.y[i]).any()}
-    return Adequacy(unseen=tuple(stack.labels[r] for r in unseen), axes=axes, drift=drift,
-                    training=training)
+    return axes
 
 
 def resting_drift(stack: Stack, axis: int, sigma_um: float, *, y: np.ndarray | None = None) -> RestingDrift:

@@ -164,7 +164,11 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
                 axis=a, residual=r, noise=noise, windows=located_windows(stack, r_clean, noise), steps=steps,
                 change_points=change_points(stack, r_clean), states=operating_states(stack, r_clean),
                 lines=spectral_lines(stack, r_clean), correlations=correlations(stack, r_clean, signals))
-        adequacy = assess(stack, model, {a: f.noise.sigma_um for a, f in findings.items()}, steps_um)
+        # a recording that starts warm (cut while the machine worked) is started in equilibrium with its first
+        # window like every other: its error is partly its start's, said, and the verdict taken without it too
+        warm = {r: why for r, rec in enumerate(recordings) if (why := starts_warm(model, rec, gap_policy=gap_policy))}
+        adequacy = assess(stack, model, {a: f.noise.sigma_um for a, f in findings.items()}, steps_um,
+                          not_at_rest=warm)
         measured = np.isfinite(stack.y).any(axis=0)
         block = make_blocks(stack.bounds, measured, options.blocks)
         held_blocks = int(block.max()) + 1 if (block >= 0).any() else 0
@@ -236,7 +240,11 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
     extended = replace(extended, info={**extended.info, "diagnosis": record})
     diag = Diagnosis(model=model, extended=extended, stack=stack, findings=findings, hypotheses=hyps, result=result,
                      results=results, options=options, adequacy=adequacy, comparison=comparison, reidentified=reid,
-                     block=block, notes=list(stack.notes), explanation=explanation, confusions=confused)
+                     block=block, notes=[*stack.notes, *(
+                         f"{stack.labels[r]}: it seems not to start at rest ({why}); diagnose starts every recording "
+                         "in equilibrium with its first window, so what it misses early on may be its start's (a "
+                         "machine not yet at rest) or a disturbance no input carries" for r, why in warm.items())],
+                     explanation=explanation, confusions=confused)
     diag.conclusions = conclusions(diag, block)
     if options.reidentify and missing:
         which = ("the model names no identification experiments" if missing == [NONE_NAMED] else

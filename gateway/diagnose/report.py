@@ -94,7 +94,12 @@ def to_json(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = "",
         "options": vars(d.options), "conclusions": d.conclusions, "notes": d.notes,
         "adequacy": {"judged": ad.judged, "fit": ad.fit, "unseen": list(ad.unseen),
                      "axes": {a: vars(x) for a, x in ad.axes.items()}, "resting_drift": {a: vars(x) for a, x in
-                                                                                          ad.drift.items()}},
+                                                                                          ad.drift.items()},
+                     # recordings that seem not to start at rest, and the verdict without them (when unfit)
+                     "not_at_rest": dict(ad.not_at_rest),
+                     "without_them": None if ad.without is None else {
+                         "unseen": list(ad.without.unseen), "fit": ad.without.fit,
+                         "axes": {a: vars(x) for a, x in ad.without.axes.items()}}},
         "accepted": [t.hypothesis.key for t in d.result.accepted if not t.hypothesis.artefact],
         "artefacts": d.artefacts,
         "written": d.comparison.chosen,
