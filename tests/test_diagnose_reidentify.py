@@ -88,6 +88,24 @@ def _day(day: int, *, seed: int, room: bool = True) -> Recording:
     return _record(f"day{day}", speed, start_s=day * DAY_S, seed=seed, room=room)
 
 
+def _bundled_day(sim_csv_dir):
+    """The bundled production day as ``cncgw`` reads it."""
+    from gateway.commands._common import read_recordings
+    from gateway.profile import load_profile
+
+    (day,) = read_recordings([str(sim_csv_dir / "production-day.csv")], load_profile("sim-vmc"), period_s=None,
+                             require_displacement=True)
+    return day
+
+
+def _write_part(day: Recording, hour: float, path):
+    """``day`` from ``hour`` on, written to ``path`` as a recording of its own."""
+    part = day.slice(round(hour * 3600 / day.period_s), len(day))
+    write_recording(path, time_s=part.time_s, columns={**part.factors, **{f"{a}_um": v for a, v in
+                                                                          part.displacement.items()}})
+    return path
+
+
 @pytest.fixture(scope="module")
 def plant_data():
     exps = [_experiment(1000.0, start_h=9.0, seed=1), _experiment(500.0, start_h=14.0, seed=2),
@@ -418,18 +436,8 @@ def test_a_recording_cut_mid_work_is_estimated_from_the_state_its_first_hour_sho
     # in it by tens of micrometres for hours; --initial-state fit takes the state a heat history of the inputs
     # leaves, fitted on the first hour over every axis, and carries it on (a free decay per axis fitted to the
     # hour extrapolated 28-44 % of the rest-start error here)
-    from gateway.commands._common import read_recordings
-    from gateway.profile import load_profile
-
-    (day,) = read_recordings([str(sim_csv_dir / "production-day.csv")], load_profile("sim-vmc"), period_s=None,
-                             require_displacement=True)
-    cuts = []
-    for hour in (10, 14):
-        part = day.slice(round(hour * 3600 / day.period_s), len(day))
-        path = tmp_path / f"from-{hour}h.csv"
-        write_recording(path, time_s=part.time_s, columns={**part.factors, **{f"{a}_um": v for a, v in
-                                                                              part.displacement.items()}})
-        cuts.append(str(path))
+    day = _bundled_day(sim_csv_dir)
+    cuts = [str(_write_part(day, hour, tmp_path / f"from-{hour}h.csv")) for hour in (10, 14)]
     figures = {}
     for state in ("rest", "fit"):
         assert main(["estimate", "--profile", "sim-vmc", *cuts, "--json", "--initial-state", state]) == 0
@@ -447,15 +455,8 @@ def test_a_recording_that_rests_at_its_start_while_it_cools_is_said_not_to_start
                                                                                           capsys):
     # the bundled production day cut at noon starts with 45 idle minutes in which z falls 11 um as the machine
     # cools; over the whole first hour the next job's heat hid that, and estimate said nothing (33 um RMS off)
-    from gateway.commands._common import read_recordings
-    from gateway.profile import load_profile
-
-    (day,) = read_recordings([str(sim_csv_dir / "production-day.csv")], load_profile("sim-vmc"), period_s=None,
-                             require_displacement=True)
-    part = day.slice(round(12 * 3600 / day.period_s), len(day))
-    path = tmp_path / "from-noon.csv"
-    write_recording(path, time_s=part.time_s, columns={**part.factors, **{f"{a}_um": v for a, v in
-                                                                          part.displacement.items()}})
+    day = _bundled_day(sim_csv_dir)
+    path = _write_part(day, 12, tmp_path / "from-noon.csv")
     assert main(["estimate", "--profile", "sim-vmc", str(path), str(sim_csv_dir / "production-day.csv"),
                  "--json"]) == 0
     notes = {e["recording"]: e["notes"] for e in json.loads(capsys.readouterr().out)}
@@ -469,15 +470,8 @@ def test_a_recording_that_rests_at_its_start_while_it_cools_is_said_not_to_start
 def test_a_recording_cut_in_a_pause_between_jobs_is_said_not_to_start_at_rest(tmp_path, sim_csv_dir, capsys):
     # the bundled production day cut at 10 h starts in a pause of three idle windows, and the next job's heat hides
     # the cooling in how far the axes move: unflagged, estimated 22 um RMS off from rest on z (1 um fitted)
-    from gateway.commands._common import read_recordings
-    from gateway.profile import load_profile
-
-    (day,) = read_recordings([str(sim_csv_dir / "production-day.csv")], load_profile("sim-vmc"), period_s=None,
-                             require_displacement=True)
-    part = day.slice(round(10 * 3600 / day.period_s), len(day))
-    path = tmp_path / "from-10h.csv"
-    write_recording(path, time_s=part.time_s, columns={**part.factors, **{f"{a}_um": v for a, v in
-                                                                          part.displacement.items()}})
+    day = _bundled_day(sim_csv_dir)
+    path = _write_part(day, 10, tmp_path / "from-10h.csv")
     assert main(["estimate", "--profile", "sim-vmc", str(path), "--json"]) == 0
     (rest,) = json.loads(capsys.readouterr().out)
     (said,) = [n for n in rest["notes"] if "seems not to start at rest" in n]
@@ -496,11 +490,7 @@ def test_an_hour_of_noise_at_rest_is_not_taken_for_a_warm_start(tmp_path, sim_cs
     # two windows of noise 3.5 sigma apart, one up, one down, spread the hour 7 sigma: the raw spread said "moves
     # 0.7 um in the first hour where the model predicts 0 um" of a machine that rests all along (41 of 686 bench
     # recordings that start at rest said so)
-    from gateway.commands._common import read_recordings
-    from gateway.profile import load_profile
-
-    (day,) = read_recordings([str(sim_csv_dir / "production-day.csv")], load_profile("sim-vmc"), period_s=None,
-                             require_displacement=True)
+    day = _bundled_day(sim_csv_dir)
     night = day.slice(0, 300)
     assert all(np.ptp(v) == 0 for v in night.factors.values())  # the machine rests over these 5 h
     rng = np.random.default_rng(5)
