@@ -357,13 +357,13 @@ def metrics_json(estimates: Sequence[Estimate]) -> str:
     return json.dumps([e.to_json() for e in estimates], indent=2)
 
 
-def starts_warm(model: ThermalModel, rec: Recording, *, gap_policy: str = "hold") -> str:
-    """Why ``rec`` does not start in equilibrium ("" when it seems to).
+def works_at_start(model: ThermalModel, rec: Recording) -> str:
+    """A factor away from its rest level at ``rec``'s first window, and how far ("" when none is).
 
-    Working at its first window; a displacement that moves in its first hour, or over the idle windows it
-    starts with, far more than the model started at rest predicts; or a first hour the model started at rest
-    misses by far more than the noise where the state some heat history leaves (:func:`_fit_initial_state`)
-    follows it.
+    Such a recording is not estimated from rest by default: ``initial="first"`` takes it in equilibrium with
+    that window, as if it had worked so for ever. Whether it was warm or had just started, its first window
+    does not say (a cold machine starting a job at 1500 rpm: z 36.9 um RMS in equilibrium with that window,
+    0.25 um from the reference levels).
     """
     covered = model.info.get("deviation_range", {}) or {}
     for f in model.factors:
@@ -375,8 +375,21 @@ def starts_warm(model: ThermalModel, rec: Recording, *, gap_policy: str = "hold"
         span = max(abs(float(lo)), abs(float(hi)))
         if span > 0 and abs(first) > 0.1 * span:
             unit = f" {model.units[f]}" if model.units.get(f) else ""
-            side = "warm" if first > 0 else "colder than at rest"
-            return f"{f} is {first:+.4g}{unit} from its rest level at the first window: {side}"
+            return f"{f} is {first:+.4g}{unit} from its rest level at the first window"
+    return ""
+
+
+def starts_warm(model: ThermalModel, rec: Recording, *, gap_policy: str = "hold") -> str:
+    """Why ``rec`` does not start in equilibrium ("" when it seems to).
+
+    A factor away from its rest level at its first window (:func:`works_at_start`); a displacement that moves
+    in its first hour, or over the idle windows it starts with, far more than the model started at rest
+    predicts; or a first hour the model started at rest misses by far more than the noise where the state some
+    heat history leaves (:func:`_fit_initial_state`) follows it.
+    """
+    working = works_at_start(model, rec)
+    if working:
+        return working
     e = estimate(model, rec, gap_policy=gap_policy)
     rel = e.time_s - e.time_s[0]
     hour = rel <= INITIAL_FIT_S

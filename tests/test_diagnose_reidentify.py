@@ -249,6 +249,12 @@ def test_validation_starts_from_the_day_before_or_from_a_fitted_state(plant_data
     assert fitted.settings["initial_state"] == "fit"
     assert "it does not start at rest (" in fitted.start
     assert any("initial state estimated from the first 1 h" in n for n in fitted.after.notes)
+    # it works at its first window (2500 rpm): its state is heat since the model's reference levels, not a state on
+    # top of working at 2500 rpm for ever
+    assert warm.factors["speed"][0] == 2500.0
+    assert fitted.settings["initial"] == "reference"
+    assert fitted.start.startswith("estimated from its first hour, from the model's reference levels: it does not "
+                                   "start at rest (speed is +2500 rpm from its rest level at the first window)")
 
 
 def test_the_written_model_reproduces_the_reported_validation_through_cncgw_estimate(tmp_path, plant_data, capsys):
@@ -260,10 +266,15 @@ def test_the_written_model_reproduces_the_reported_validation_through_cncgw_esti
         path = tmp_path / rec.source
         write_recording(path, time_s=rec.time_s, columns={**rec.factors, "z_um": rec.displacement["z"]})
         files.append(str(path))
+    # and the fresh day cut while it works: validated from the reference levels with its state fitted
+    k = int(np.flatnonzero(fresh.factors["speed"][600:] > 0)[0]) + 600
+    working = fresh.slice(k, len(fresh))
+    cut = tmp_path / "day6-cut.csv"
+    write_recording(cut, time_s=working.time_s, columns={**working.factors, "z_um": working.displacement["z"]})
     model = save_model(base, tmp_path / "base.model.toml")
     out = tmp_path / "report"
     assert main(["diagnose", "--profile", str(profile), "--model", str(model), *files[:-1], "-o", str(out),
-                 "--validate", files[-1]]) == 0
+                 "--validate", files[-1], str(cut)]) == 0
     capsys.readouterr()
     doc = json.loads((out / "report.json").read_text())
     assert doc["written"] == "reidentified"
@@ -292,6 +303,13 @@ def test_the_written_model_reproduces_the_reported_validation_through_cncgw_esti
     (cmd,) = re.findall(r"^- day6: `(cncgw estimate [^`]+)`$", md, flags=re.M)
     assert cmd == f"cncgw estimate --profile {profile} --model {written} {files[-1]}"
     assert main([*shlex.split(cmd)[1:], "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)[0]["axes"]["z"]["rms_um"] == pytest.approx(reported["rms_um"], rel=1e-6)
+    # ... and the one cut while it works, with the options it was estimated with
+    (cmd,) = re.findall(r"^- day6-cut: `(cncgw estimate [^`]+)`$", md, flags=re.M)
+    assert cmd == (f"cncgw estimate --profile {profile} --model {written} --initial reference --initial-state fit "
+                   f"{cut}")
+    assert main([*shlex.split(cmd)[1:], "--json"]) == 0
+    reported = doc["validation"][1]["after"]["z"]
     assert json.loads(capsys.readouterr().out)[0]["axes"]["z"]["rms_um"] == pytest.approx(reported["rms_um"], rel=1e-6)
 
 
@@ -423,12 +441,21 @@ def test_estimate_says_when_a_recording_it_starts_at_rest_seems_to_start_warm(tm
     assert main(["estimate", "--profile", str(profile), "--model", str(model), str(path), str(calm), "--json"]) == 0
     notes = {e["recording"]: e["notes"] for e in json.loads(capsys.readouterr().out)}
     (said,) = [n for n in notes[str(path)] if "seems not to start at rest" in n]
-    assert said.endswith("--initial-state fit estimates its initial state from its first hour")
+    # it works at its first window: taken in equilibrium with it by default, which is neither a machine that has
+    # just started nor one warm from an unknown day; the note says what each option does instead
+    assert said.startswith("it seems not to start at rest (speed is +")
+    assert ("from its rest level at the first window), and is estimated in equilibrium with its first window (as if "
+            "it had worked so for ever): --initial reference starts it from the model's reference levels") in said
+    assert said.endswith("--initial reference --initial-state fit estimates its state from its first hour (what "
+                         "diagnose --validate does)")
     assert not any("seems not to start at rest" in n for n in notes[str(calm)])
-    assert main(["estimate", "--profile", str(profile), "--model", str(model), str(path), "--json",
-                 "--initial-state", "fit"]) == 0
-    (fitted,) = json.loads(capsys.readouterr().out)
-    assert not any("seems not to start at rest" in n for n in fitted["notes"])
+    figures = {}
+    for opts in ([], ["--initial", "reference"], ["--initial", "reference", "--initial-state", "fit"]):
+        assert main(["estimate", "--profile", str(profile), "--model", str(model), str(path), "--json", *opts]) == 0
+        (figures[len(opts)],) = json.loads(capsys.readouterr().out)
+    assert figures[2]["notes"][-1].endswith("is estimated from rest: --initial-state fit estimates its initial "
+                                            "state from its first hour")
+    assert not any("seems not to start at rest" in n for n in figures[4]["notes"])
 
 
 def test_a_recording_cut_mid_work_is_estimated_from_the_state_its_first_hour_shows(tmp_path, sim_csv_dir, capsys):

@@ -25,7 +25,15 @@ from gateway.errors import GatewayError, UsageError
 from gateway.prepare import INITIAL_CHOICES
 from gateway.profile import load_profile
 from gateway.recording import continued, recording_name, split_part
-from gateway.replay import ALIGN_CHOICES, INITIAL_STATES, estimate, metrics_json, plot_estimates, starts_warm
+from gateway.replay import (
+    ALIGN_CHOICES,
+    INITIAL_STATES,
+    estimate,
+    metrics_json,
+    plot_estimates,
+    starts_warm,
+    works_at_start,
+)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -137,9 +145,8 @@ def run(args: argparse.Namespace) -> int:
             # --validate estimates such a one from its first hour): said, with the option that does
             warm = starts_warm(model, r, gap_policy=args.gap_policy)
             if warm:
-                e = dataclasses.replace(e, notes=(*e.notes, f"it seems not to start at rest ({warm}), and is estimated "
-                                                            "from rest: --initial-state fit estimates its initial "
-                                                            "state from its first hour"))
+                e = dataclasses.replace(e, notes=(*e.notes, _not_at_rest(warm, working=bool(works_at_start(model, r)),
+                                                                          initial=args.initial)))
         ests.append(e)
         history = _carried(history, r)
     if paths:
@@ -160,6 +167,22 @@ def run(args: argparse.Namespace) -> int:
         if not args.json:
             print(f"wrote {args.plot}")
     return 0
+
+
+def _not_at_rest(why: str, *, working: bool, initial: str) -> str:
+    """The note for a recording estimated from rest that seems not to start at rest (``why``).
+
+    ``working``: a factor is away from its rest level at the first window; with ``--initial first`` (the
+    default) the recording is then taken in equilibrium with that window, as if it had worked so for ever,
+    which is neither a machine that has just started nor one warm from an unknown day.
+    """
+    if working and initial == "first":
+        return (f"it seems not to start at rest ({why}), and is estimated in equilibrium with its first window (as "
+                "if it had worked so for ever): --initial reference starts it from the model's reference levels "
+                "(a machine that has just started), and --initial reference --initial-state fit estimates its "
+                "state from its first hour (what diagnose --validate does)")
+    return (f"it seems not to start at rest ({why}), and is estimated from rest: --initial-state fit estimates its "
+            "initial state from its first hour")
 
 
 def _ran_before(history: Any, rec: Any, args: argparse.Namespace) -> Any:

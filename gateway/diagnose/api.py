@@ -54,7 +54,7 @@ from gateway.model.model import ThermalModel
 from gateway.prepare import prepare
 from gateway.profile import Profile
 from gateway.recording import Recording, continued, split_part
-from gateway.replay import AxisFigures, Estimate, estimate, starts_warm
+from gateway.replay import AxisFigures, Estimate, estimate, starts_warm, works_at_start
 
 
 @dataclass(kw_only=True)
@@ -583,7 +583,7 @@ def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence
             hist = part if hist is None else continued(hist, part)
         if hist is not None and not chain:  # files whose times each count from 0: the history ran just before
             hist = hist.ending_before(rec)
-        initial_state = "rest"
+        initial_state, initial = "rest", "first"
         if hist is not None:
             start = f"carried from {', '.join(label[p.source] for p in before_it)} (ran just before it)"
         else:
@@ -591,12 +591,18 @@ def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence
             if warm:
                 initial_state = "fit"
                 start = f"estimated from its first hour: it does not start at rest ({warm})"
+                if works_at_start(d.extended, rec):
+                    # its first window is no equilibrium: heat since the reference levels (a machine that has just
+                    # started, or a warm one), not a state on top of working at that window for ever
+                    initial = "reference"
+                    start = (f"estimated from its first hour, from the model's reference levels: it does not start at "
+                             f"rest ({warm})")
             else:
                 start = "at rest (it starts with the machine in equilibrium)"
             if split_part(rec.source):  # a user whose files follow one another saw no reason it was not carried
                 start += ("; a run of a --split-by file is never carried on from the one before it (--history FILE "
                           "carries)")
-        kw = {"gap_policy": gap_policy, "history": hist, "initial_state": initial_state}
+        kw = {"gap_policy": gap_policy, "history": hist, "initial_state": initial_state, "initial": initial}
         before = estimate(d.model, rec, **kw)
         after = estimate(d.extended, rec, **kw)
         out.append(Validation(recording=rec.source, label=label[rec.source], start=start,

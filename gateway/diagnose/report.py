@@ -273,7 +273,7 @@ def to_markdown(d: Diagnosis, *, figures: Sequence[str] = (), model_file: str = 
         L.append("")
         for v in validations:
             opts = " ".join(f"--{k.replace('_', '-')} {q(val)}" for k, val in v.settings.items()
-                            if k in ("initial_state", "history") and val not in ("rest",))
+                            if k in ("initial", "initial_state", "history") and val not in ("rest", "first"))
             file, part = split_file(v.recording)
             if part:  # a run of a split file: estimate splits the file the same way, this run among the others
                 L.append(f"- {v.label}: `{estimate_cmd} {opts + ' ' if opts else ''}--split-by {q(part[0])} {q(file)}` "
