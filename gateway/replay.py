@@ -34,11 +34,11 @@ INITIAL_FIT_S = 3600.0
 #: deviation in the identification experiments or in the recording, whichever is larger
 INITIAL_HISTORY_H = (1.0, 3.0, 8.0, 24.0)
 INITIAL_FIT_LEVEL = 1.5
-#: windows of the running mean whose move in the first hour says a recording does not start at rest
+#: windows of the running median whose move in the first hour says a recording does not start at rest
 WARM_SMOOTH = 5
 #: a first hour the model started at rest misses by more than this many times the noise (and a warm state
 #: follows to a third of that) does not start at rest
-WARM_MISS_SIGMA = 6.0
+WARM_MISS_SIGMA = 4.0
 #: most windows of idle lead-in averaged for the measured zero
 LEAD_IN_MAX = 10
 
@@ -409,11 +409,11 @@ def starts_warm(model: ThermalModel, rec: Recording, *, gap_policy: str = "hold"
             ok = span & np.isfinite(y)
             if ok.sum() < least:
                 continue
-            # the move of its running mean over WARM_SMOOTH windows: the raw spread of an hour of noise alone
+            # the move of its running median over WARM_SMOOTH windows: the raw spread of an hour of noise alone
             # passes 6 sigma in a few axis-hours of 100 (0.6 um moves flagged in 41 of 686 bench recordings
-            # that start at rest)
+            # that start at rest), and a running mean still passed it with one spike of 3 um (a sensor's)
             k = min(WARM_SMOOTH, int(ok.sum()))
-            moved = float(np.ptp(np.convolve(y[ok], np.full(k, 1.0 / k), mode="valid")))
+            moved = float(np.ptp(np.median(np.lib.stride_tricks.sliding_window_view(y[ok], k), axis=1)))
             predicted = float(np.ptp(e.estimated[i][ok]))
             if moved > max(6.0 * sigma[i], 3.0 * predicted, 1e-9):
                 return (f"axis {a} moves {moved:.3g} um {when} where the model, started at rest, predicts "
