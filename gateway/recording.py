@@ -35,6 +35,7 @@ import io
 import math
 import os
 import re
+import unicodedata
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
@@ -586,8 +587,30 @@ def _decimal_point(cell: str, path: Path, line: int, header: Sequence[str], i: i
 
 
 def _words(name: str) -> list[str]:
-    """A column name's words, in small letters: "X_um [um]" -> ["x", "um", "um"]."""
-    return [w for w in re.split(r"[^a-z0-9]+", name.lower()) if w]
+    """A column name's words, in small letters: "X_um [um]" -> ["x", "um", "um"], "x_µm" -> ["x", "um"].
+
+    Compatibility forms are folded (full-width letters typed in another keyboard mode, the micro sign).
+    """
+    folded = unicodedata.normalize("NFKC", name).lower().replace("\u03bc", "u")
+    return [w for w in re.split(r"[^a-z0-9]+", folded) if w]
+
+
+def unread_displacement(rec: Recording, displacement_columns: Mapping[str, str]) -> list[str]:
+    """For each axis not measured in ``rec`` whose column name's first word an unread column shares, a warning.
+
+    ``x_mm``, ``x_disp_um`` or ``x`` beside no ``x_um`` read as no measurement of x, which the estimate's figures
+    then leave out without a word; the user is told which columns were not read (they may be something else).
+    """
+    out = []
+    for axis, c in displacement_columns.items():
+        if axis in rec.displacement:
+            continue
+        alike = [h for h in (*rec.extras, *rec.text) if _words(h)[:1] == _words(c)[:1]]
+        if alike:
+            out.append(f'{rec.source}: no column "{c}" (the measured displacement {axis}, in um): axis {axis} is not '
+                       f"measured in it; not read: {', '.join(alike[:4])}{', ...' if len(alike) > 4 else ''} (if one "
+                       f'of them is it, in um, name it "{c}")')
+    return out
 
 
 def _clip(cell: str, width: int = 40) -> str:

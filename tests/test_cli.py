@@ -191,6 +191,25 @@ def test_estimate_warns_when_the_model_names_another_machine(workdir, capsys):
     assert "`cncgw run` refuses it" in err
 
 
+def test_estimate_warns_of_an_axis_not_measured_beside_a_column_that_may_be_it(workdir, capsys):
+    # x_mm beside no x_um: read as no measurement of x, which the figures then left out without a word
+    assert main(["identify", "--profile", "lathe.toml", "exp1.csv", "exp2.csv", "-o", "model.toml"]) == 0
+    text = Path("val.csv").read_text().replace(",x_um,", ",x_mm,")
+    Path("val-mm.csv").write_text(text)
+    capsys.readouterr()
+    assert main(["estimate", "--profile", "lathe.toml", "--model", "model.toml", "val-mm.csv"]) == 0
+    out, err = capsys.readouterr()
+    assert ('cncgw: warning: val-mm.csv: no column "x_um" (the measured displacement x, in um): axis x is not '
+            'measured in it; not read: x_mm (if one of them is it, in um, name it "x_um")') in err
+    assert "  x: RMS" not in out
+    assert "  z: RMS" in out
+    # the one spelled in a micro sign or in full-width letters is it: refused, named
+    for name in ("x_\u00b5m", "\uff58_um"):
+        Path("val-u.csv").write_text(text.replace(",x_mm,", f",{name},"))
+        assert main(["estimate", "--profile", "lathe.toml", "--model", "model.toml", "val-u.csv"]) != 0
+        assert f'column "{name}" looks like the measured displacement x ("x_um", in um)' in capsys.readouterr().err
+
+
 def test_a_mistyped_model_file_is_named_with_the_model_file_beside_it(workdir, capsys):
     Path("vmc.model.toml").write_text("")  # only its name matters: the error comes before any reading
     assert main(["estimate", "--profile", "lathe.toml", "--model", "vmc.modle.toml", "val.csv"]) == 5

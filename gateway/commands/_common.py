@@ -16,7 +16,7 @@ from gateway.errors import GatewayError, ModelError, UsageError, did_you_mean
 from gateway.model import ThermalModel, load_model
 from gateway.model.inputs import hold_missing
 from gateway.profile import Profile
-from gateway.recording import Recording, read_for_profile, recording_name
+from gateway.recording import Recording, read_for_profile, recording_name, unread_displacement
 
 
 def plain(doc: str | None) -> str:
@@ -136,8 +136,13 @@ def add_split_option(p: argparse.ArgumentParser, *, also: str = "") -> None:
 
 def read_recordings(paths: Sequence[str], profile: Profile, *, period_s: float | None,
                     require_displacement: bool) -> list[Recording]:
-    return [read_for_profile(p, profile, period_s=period_s, require_displacement=require_displacement)
+    """Each file as ``profile`` lays it out; warns (stderr) of an axis not measured beside unread look-alikes."""
+    recs = [read_for_profile(p, profile, period_s=period_s, require_displacement=require_displacement)
             for p in paths]
+    for r in recs:
+        for text in unread_displacement(r, profile.recording.displacement_columns):
+            print(f"cncgw: warning: {text}", file=sys.stderr)
+    return recs
 
 
 def read_history(args: argparse.Namespace, profile: Profile) -> Recording | None:
