@@ -10,6 +10,7 @@ figure a user gets comes from the written model through ``estimate``.
 from __future__ import annotations
 
 import json
+import math
 import re
 import shlex
 from dataclasses import replace
@@ -311,6 +312,15 @@ def test_the_written_model_reproduces_the_reported_validation_through_cncgw_esti
     assert main([*shlex.split(cmd)[1:], "--json"]) == 0
     reported = doc["validation"][1]["after"]["z"]
     assert json.loads(capsys.readouterr().out)[0]["axes"]["z"]["rms_um"] == pytest.approx(reported["rms_um"], rel=1e-6)
+    # the conclusions sum the validation up, pooled over its recordings, and say where the written model is worse
+    (summary,) = [c for c in doc["conclusions"] if c.startswith("validation (2 recording(s) never fitted)")]
+    pooled = [math.sqrt(sum(v[k]["z"]["windows"] * v[k]["z"]["rms_um"] ** 2 for v in doc["validation"])
+                        / sum(v[k]["z"]["windows"] for v in doc["validation"])) for k in ("before", "after")]
+    assert f"RMS identified -> written model: z {pooled[0]:.3g} -> {pooled[1]:.3g} um" in summary
+    worse = [v for v in doc["validation"] if v["after"]["z"]["rms_um"] > 1.1 * v["before"]["z"]["rms_um"]
+             and v["after"]["z"]["rms_um"] - v["before"]["z"]["rms_um"] > 0.01]
+    assert ("the written model is worse on" in summary) == bool(worse), summary
+    assert f"- {summary}" in md, summary
 
 
 _PROFILE = """\

@@ -101,7 +101,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Diagnose; print the verdict, conclusions and the models compared; write the report on request."""
     from gateway.diagnose import Options, diagnose, factor_infos, write_report
-    from gateway.diagnose.api import validate
+    from gateway.diagnose.api import validate, validation_summary
     from gateway.diagnose.report import to_json
 
     check_output("-o", args.output, directory=True)
@@ -153,6 +153,8 @@ def run(args: argparse.Namespace) -> int:
     # with --period-s every file's times count from 0: one ending where another starts is no sign it ran before
     validations = validate(d, vrecs, earlier=recs, history=history, gap_policy=args.gap_policy,
                            chain=args.period_s is None) if vrecs else []
+    if summary := validation_summary(d, validations):
+        d.conclusions.append(summary)
     extra = {"model": str(model_path), "profile": str(profile.path)}
     written = {}
     if out is not None:

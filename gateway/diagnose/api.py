@@ -610,6 +610,37 @@ def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence
     return out
 
 
+def validation_summary(d: Diagnosis, validations: Sequence[Validation]) -> str:
+    """The validation in one conclusion: pooled RMS per axis, identified -> written, and where the written is worse.
+
+    The table alone left it to the reader: a written model better over the held-out blocks can be worse on a
+    validation day (a warm one, a schedule the diagnosed days did not have), and the verdict did not say so.
+    """
+    if not validations or d.comparison.chosen == "identified":
+        return ""
+    pooled, worse = [], []
+    for a in d.model.axes:
+        pairs = [(v, v.before.metrics[a], v.after.metrics[a]) for v in validations
+                 if a in v.before.metrics and a in v.after.metrics and v.before.metrics[a].windows]
+        if not pairs:
+            continue
+        n = sum(m.windows for _, m, _ in pairs)
+        rms = [math.sqrt(sum(m.windows * m.rms_um ** 2 for m in ms) / n)
+               for ms in ([b for _, b, _ in pairs], [f for _, _, f in pairs])]
+        pooled.append(f"{a} {rms[0]:.3g} -> {rms[1]:.3g} um")
+        # worse by over a tenth and by more than a hundredth of a micrometre: a real loss, not a rounding
+        worse += [f"{v.label} {a} {b.rms_um:.3g} -> {f.rms_um:.3g} um" for v, b, f in pairs
+                  if f.rms_um > 1.1 * b.rms_um and f.rms_um - b.rms_um > 0.01]
+    if not pooled:
+        return ""
+    text = (f"validation ({len(validations)} recording(s) never fitted), RMS identified -> written model: "
+            f"{', '.join(pooled)}")
+    if worse:
+        text += (f"; the written model is worse on {', '.join(worse[:6])}{', ...' if len(worse) > 6 else ''}: "
+                 "weigh that before compensating with it")
+    return text
+
+
 def _preceding(rec: Recording, pool: Sequence[Recording]) -> list[Recording]:
     """The recordings that ran just before ``rec``, each ending one window before the next starts, oldest first.
 
