@@ -539,6 +539,25 @@ def test_a_recording_cut_in_a_pause_between_jobs_is_said_not_to_start_at_rest(tm
         assert any("seems not to start at rest" in n for n in e["notes"]), (seed, e["notes"])
 
 
+def test_estimate_says_when_a_recording_follows_another_it_was_given_with(tmp_path, sim_csv_dir, capsys):
+    # the day written as two files, the second starting one window after the first ends: estimated on its own,
+    # from rest, as it must be without --history, but said (diagnose --validate carries such a one)
+    day = _bundled_day(sim_csv_dir)
+    first = day.slice(0, round(10 * 3600 / day.period_s))
+    head = tmp_path / "to-10h.csv"
+    write_recording(head, time_s=first.time_s, columns={**first.factors, **{f"{a}_um": v for a, v in
+                                                                           first.displacement.items()}})
+    tail = _write_part(day, 10, tmp_path / "from-10h.csv")
+    assert main(["estimate", "--profile", "sim-vmc", str(head), str(tail), "--json"]) == 0
+    notes = {e["recording"]: e["notes"] for e in json.loads(capsys.readouterr().out)}
+    assert f"it starts one window after {head} ends, yet is estimated on its own: --history {head} starts it in the " \
+           "state that one left" in notes[str(tail)]
+    assert not any("starts one window after" in n for n in notes[str(head)])
+    assert main(["estimate", "--profile", "sim-vmc", "--history", str(head), str(tail), "--json"]) == 0
+    (e,) = json.loads(capsys.readouterr().out)
+    assert not any("starts one window after" in n for n in e["notes"])
+
+
 def test_an_hour_of_noise_and_a_spike_at_rest_is_not_taken_for_a_warm_start(tmp_path, sim_csv_dir, capsys):
     # two windows of noise 3.5 sigma apart, one up, one down, spread the hour 7 sigma: the raw spread said "moves
     # 0.7 um in the first hour where the model predicts 0 um" of a machine that rests all along (41 of 686 bench

@@ -140,6 +140,16 @@ def run(args: argparse.Namespace) -> int:
         history = _ran_before(history, r, args)
         e = estimate(model, r, initial=args.initial, gap_policy=args.gap_policy, align=args.align, history=history,
                      initial_state=args.initial_state)
+        if history is None and not args.period_s:
+            # the one given just before it ended one window before it starts: the machine did not rest between
+            # them, yet this one starts at rest (diagnose --validate carries such a one; here --history does)
+            before = [p for p in recs if p is not r and not split_part(p.source) and not split_part(r.source)
+                      and len(p) and len(r) and abs(p.period_s - r.period_s) < 1e-9 * r.period_s
+                      and 0.5 * r.period_s < r.time_s[0] - p.time_s[-1] <= 1.5 * r.period_s]
+            if before:
+                e = dataclasses.replace(e, notes=(*e.notes, f"it starts one window after {before[0].source} ends, yet "
+                                                            f"is estimated on its own: --history {before[0].source} "
+                                                            "starts it in the state that one left"))
         if history is None and args.initial_state == "rest":
             # a recording that starts mid-work, estimated from rest: its figures are of the wrong start (diagnose
             # --validate estimates such a one from its first hour): said, with the option that does
