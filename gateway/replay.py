@@ -162,7 +162,10 @@ def estimate(
     check = check_coverage(model.coverage, du, model.factors, model.units) if model.coverage is not None else None
     notes = list(prep.notes) + (check.notes(rec.period_s) if check is not None else extrapolation_notes(model, du))
     if history is not None:
-        notes.append(f"started in the state {history.source} left (its {len(history)} windows run first)")
+        gap_s = float(rec.time_s[0] - history.time_s[-1]) - rec.period_s if len(history) and len(rec) else 0.0
+        between = (f"; it ends {gap_s / 3600:.3g} h before this one starts, and the hours in the gap note count from "
+                   "its start" if gap_s > 0.5 * rec.period_s else "")
+        notes.append(f"started in the state {history.source} left (its {len(history)} windows run first{between})")
     if initial_state == "fit":
         est, text = _fit_initial_state(model, rec.period_s, time_s, est, measured, du)
         notes.append(text)

@@ -556,6 +556,16 @@ def test_estimate_says_when_a_recording_follows_another_it_was_given_with(tmp_pa
     assert main(["estimate", "--profile", "sim-vmc", "--history", str(head), str(tail), "--json"]) == 0
     (e,) = json.loads(capsys.readouterr().out)
     assert not any("starts one window after" in n for n in e["notes"])
+    assert f"started in the state {head} left (its 600 windows run first)" in e["notes"]
+    # a history that ends hours before: the gap note's hours count from the history's start, said so
+    early = tmp_path / "to-6h.csv"
+    write_recording(early, time_s=first.time_s[:360], columns={
+        **{k: v[:360] for k, v in first.factors.items()}, **{f"{a}_um": v[:360] for a, v in first.displacement.items()}})
+    assert main(["estimate", "--profile", "sim-vmc", "--history", str(early), str(tail), "--json"]) == 0
+    (e,) = json.loads(capsys.readouterr().out)
+    assert any(n.startswith("240 missing window(s) in 1 gap(s) (the longest: 240 windows from 6 h)") for n in e["notes"])
+    assert (f"started in the state {early} left (its 360 windows run first; it ends 4 h before this one starts, and "
+            "the hours in the gap note count from its start)") in e["notes"]
 
 
 def test_an_hour_of_noise_and_a_spike_at_rest_is_not_taken_for_a_warm_start(tmp_path, sim_csv_dir, capsys):
