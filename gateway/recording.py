@@ -595,6 +595,12 @@ def _words(name: str) -> list[str]:
     return [w for w in re.split(r"[^a-z0-9]+", folded) if w]
 
 
+def displacement_lookalikes(rec: Recording, displacement_columns: Mapping[str, str]) -> dict[str, list[str]]:
+    """Per axis not measured in ``rec``: its unread columns whose name's first word is the axis column's."""
+    return {axis: [h for h in (*rec.extras, *rec.text) if _words(h)[:1] == _words(c)[:1]]
+            for axis, c in displacement_columns.items() if axis not in rec.displacement}
+
+
 def unread_displacement(rec: Recording, displacement_columns: Mapping[str, str]) -> list[str]:
     """For each axis not measured in ``rec`` whose column name's first word an unread column shares, a warning.
 
@@ -602,10 +608,8 @@ def unread_displacement(rec: Recording, displacement_columns: Mapping[str, str])
     then leave out without a word; the user is told which columns were not read (they may be something else).
     """
     out = []
-    for axis, c in displacement_columns.items():
-        if axis in rec.displacement:
-            continue
-        alike = [h for h in (*rec.extras, *rec.text) if _words(h)[:1] == _words(c)[:1]]
+    for axis, alike in displacement_lookalikes(rec, displacement_columns).items():
+        c = displacement_columns[axis]
         if alike:
             out.append(f'{rec.source}: no column "{c}" (the measured displacement {axis}, in um): axis {axis} is not '
                        f"measured in it; not read: {', '.join(alike[:4])}{', ...' if len(alike) > 4 else ''} (if one "

@@ -203,6 +203,20 @@ def test_estimate_warns_of_an_axis_not_measured_beside_a_column_that_may_be_it(w
             'measured in it; not read: x_mm (if one of them is it, in um, name it "x_um")') in err
     assert "  x: RMS" not in out
     assert "  z: RMS" in out
+    # diagnose does not try it as a signal for z (a displacement explains another axis only by the same heat);
+    # nor does an axis measured in no recording it judges on break the joint choice of a machine-wide setting
+    # (an IndexError: the axes' folds differed) or print "held-out RMS x nan -> nan um"
+    assert main(["diagnose", "--profile", "lathe.toml", "--model", "model.toml", "exp1.csv", "exp2.csv",
+                 "val-mm.csv", "--json"]) == 0
+    out, err = capsys.readouterr()
+    doc = json.loads(out)
+    assert not any("nan" in c for c in doc["conclusions"]), doc["conclusions"]
+    assert doc["held_out"]["before"]["x"]["windows"] == 0
+    assert doc["held_out"]["before"]["z"]["windows"] > 0
+    assert "not read: x_mm" in err
+    assert any(c.startswith("not tried as signals: x_mm (each may be a measured displacement") for c in
+               doc["conclusions"]), doc["conclusions"]
+    assert not any("x_mm" in t["hypothesis"] for t in doc["trials"])
     # the one spelled in a micro sign or in full-width letters is it: refused, named
     for name in ("x_\u00b5m", "\uff58_um"):
         Path("val-u.csv").write_text(text.replace(",x_mm,", f",{name},"))

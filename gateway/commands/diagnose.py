@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -24,7 +25,8 @@ from gateway.commands._common import (
     warn_other_machine,
 )
 from gateway.errors import GatewayError, UsageError
-from gateway.profile import load_profile
+from gateway.profile import Profile, load_profile
+from gateway.recording import displacement_lookalikes
 
 
 def _share(text: str) -> float:
@@ -119,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
         if args.validate else []
     if args.split_by:
         recs, vrecs = split_those_with(recs, args.split_by, vrecs), split_those_with(vrecs, args.split_by, recs)
+    recs, unread = _without_lookalikes(recs, profile, args.use_signal)
     fitted = refuse_duplicates(recs, model.factors,
                                counts="counts twice in the held-out blocks and doubles its evidence")
     _check_signals(args.use_signal, recs)
@@ -146,6 +149,10 @@ def run(args: argparse.Namespace) -> int:
     finally:
         close()
     d.conclusions += hedges
+    if unread:
+        d.conclusions.append(f"not tried as signals: {', '.join(unread)} (each may be a measured displacement under "
+                             "another name, which explains another axis only by moving with the same heat; "
+                             "--use-signal tries one)")
     if args.period_s:
         hedges.append(f"rows were taken as {args.period_s:g} s apart (--period-s): every time constant and dead time "
                       "found scales with the true period")
@@ -176,6 +183,9 @@ def run(args: argparse.Namespace) -> int:
     print("held-out error per axis (each block predicted from the others), identified -> written model "
           f"({d.comparison.written.title}):")
     for a, b in d.before.items():
+        if not b.windows:
+            print(f"  {a}: measured in no held-out block")
+            continue
         af = d.after.get(a, b)
         print(f"  {a}: RMS {b.rms_um:.3f} -> {af.rms_um:.3f} um, max |error| {b.max_abs_error_um:.3f} -> "
               f"{af.max_abs_error_um:.3f} um ({b.max_error_pct_of_peak:.1f} -> {af.max_error_pct_of_peak:.1f} % of "
@@ -190,6 +200,21 @@ def run(args: argparse.Namespace) -> int:
     for path in written.values():
         print(f"wrote {path}")
     return 0
+
+
+def _without_lookalikes(recs: list, profile: Profile, use_signals: list[str]) -> tuple[list, list[str]]:
+    """``recs`` without the unread columns that may be a missing axis's displacement, and their names.
+
+    ``x_mm`` beside no ``x_um`` (warned of when read) was tried as a recorded signal for y and z, which a
+    displacement explains only by following the same heat; ``--use-signal`` keeps one.
+    """
+    out, names = [], []
+    for r in recs:
+        drop = {h for alike in displacement_lookalikes(r, profile.recording.displacement_columns).values()
+                for h in alike if h in r.extras and h not in use_signals}
+        names += [h for h in sorted(drop) if h not in names]
+        out.append(dataclasses.replace(r, extras={k: v for k, v in r.extras.items() if k not in drop}) if drop else r)
+    return out, names
 
 
 def _check_signals(columns: list[str], recs: list) -> None:

@@ -359,7 +359,7 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
         if c.key == "identified":
             continue
         rms = ", ".join(f"{a} {cands['identified'].metrics[a].rms_um:.3g} -> {m.rms_um:.3g} um"
-                        for a, m in c.metrics.items())
+                        for a, m in c.metrics.items() if m.windows)  # an axis measured in no held-out block: none
         out.append(f"{c.title}: held-out RMS {rms}; {c.verdict}")
     if written.key == "identified":
         if not d.adequacy.fit:
