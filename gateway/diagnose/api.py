@@ -240,10 +240,7 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
     extended = replace(extended, info={**extended.info, "diagnosis": record})
     diag = Diagnosis(model=model, extended=extended, stack=stack, findings=findings, hypotheses=hyps, result=result,
                      results=results, options=options, adequacy=adequacy, comparison=comparison, reidentified=reid,
-                     block=block, notes=[*stack.notes, *(
-                         f"{stack.labels[r]}: it seems not to start at rest ({why}); diagnose starts every recording "
-                         "in equilibrium with its first window, so what it misses early on may be its start's (a "
-                         "machine not yet at rest) or a disturbance no input carries" for r, why in warm.items())],
+                     block=block, notes=[*stack.notes, *_not_at_rest_notes(stack, warm)],
                      explanation=explanation, confusions=confused)
     diag.conclusions = conclusions(diag, block)
     if options.reidentify and missing:
@@ -608,6 +605,24 @@ def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence
         out.append(Validation(recording=rec.source, label=label[rec.source], start=start,
                               settings=dict(after.settings), before=before, after=after))
     return out
+
+
+def _not_at_rest_notes(stack: Stack, warm: dict[int, str]) -> list[str]:
+    """Notes on the recordings that seem not to start at rest (by index: why): one each, or one for many.
+
+    A room that drifts in every recording makes each of them move early: thirteen notes alike said less than one.
+    """
+    tail = ("diagnose starts every recording in equilibrium with its first window, so what {} early on may be "
+            "{} start's (a machine not yet at rest) or a disturbance no input carries")
+    if len(warm) <= 2:
+        return [f"{stack.labels[r]}: it seems not to start at rest ({why}); {tail.format('it misses', 'its')}"
+                for r, why in warm.items()]
+    first, why = next(iter(warm.items()))
+    names = [stack.labels[r] for r in warm]
+    listed = ", ".join(names[:6]) + (", ..." if len(names) > 6 else "")
+    return [f"{len(warm)} recordings seem not to start at rest ({listed}; {stack.labels[first]}: {why}); "
+            f"{tail.format('they miss', 'their')}"
+            + ("; all of them: more likely a disturbance than starts" if len(warm) == len(stack.labels) else "")]
 
 
 def validation_summary(d: Diagnosis, validations: Sequence[Validation]) -> str:
