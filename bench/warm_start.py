@@ -6,7 +6,9 @@ The scenario is simulated (the bundled plant) and cut at each hour of ``--cuts``
 with nothing before it, is estimated with the bundled model started at rest and with its initial state fitted
 to its first hour (:func:`gateway.replay.estimate`). Printed per cut and axis: the RMS error over the part
 (the first hour included, where the fit is scored on what it was fitted to) and over the hours after the first
-(what the fitted state carried into), and the fit's share of the rest start's error (same run, same data).
+(what the fitted state carried into), and the fit's share of the rest start's error (same run, same data); last,
+the same with the inputs taken from the model's reference levels (``--initial reference --initial-state fit``,
+what ``diagnose --validate`` does with a part that works at its first window).
 ``--plot``: the error of both estimates on the axis that moves most, for every cut.
 """
 
@@ -37,10 +39,12 @@ def main(argv: list[str] | None = None) -> int:
     rec = simulate(load_scenario(args.scenario)).recording()
     rows, curves = [], []
     print(f"{args.scenario}, bundled model; RMS um over the part / over the hours after the first")
-    print(f"{'cut':>5} {'axis':>4} {'at rest':>16} {'fitted':>16} {'fitted/rest':>12}")
+    print(f"{'cut':>5} {'axis':>4} {'at rest':>16} {'fitted':>16} {'fitted/rest':>12} {'ref. + fitted':>16}")
     for cut in cuts:
         part = rec.slice(round(cut * 3600.0 / rec.period_s), len(rec))
         runs = {state: estimate(model, part, initial_state=state) for state in ("rest", "fit")}
+        # a part that works at its first window: what diagnose --validate does (from the reference levels, fitted)
+        ref = estimate(model, part, initial="reference", initial_state="fit")
         later = (part.time_s - part.time_s[0]) >= INITIAL_FIT_S
         for i, a in enumerate(model.axes):
             figs = {}
@@ -49,8 +53,10 @@ def main(argv: list[str] | None = None) -> int:
                 figs[state] = (e.metrics[a].rms_um, float(np.sqrt(np.nanmean(err[later] ** 2))))
             ratio = figs["fit"][1] / figs["rest"][1] if figs["rest"][1] > 0 else float("nan")
             rows.append(ratio)
+            err = ref.measured[i] - ref.estimated[i]
             print(f"{cut:5g} {a:>4} {figs['rest'][0]:7.2f} / {figs['rest'][1]:6.2f} "
-                  f"{figs['fit'][0]:7.2f} / {figs['fit'][1]:6.2f} {ratio:12.2f}")
+                  f"{figs['fit'][0]:7.2f} / {figs['fit'][1]:6.2f} {ratio:12.2f} "
+                  f"{ref.metrics[a].rms_um:7.2f} / {float(np.sqrt(np.nanmean(err[later] ** 2))):6.2f}")
         curves.append((cut, part, runs))
     print(f"fitted / at rest after the first hour: median {np.nanmedian(rows):.2f} over {len(rows)} cuts x axes")
     if args.plot:
