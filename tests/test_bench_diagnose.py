@@ -151,3 +151,30 @@ def test_the_summary_separates_what_the_signals_cannot_name_from_the_rest(bench)
     missed = [ln for ln in lines if ln.strip().startswith("not named:")]
     assert missed == ["  not named: 2; of them said indistinguishable from a factor's path (the signals cannot name "
                       "it) 1; the rest: slow mode v1"]
+
+
+@pytest.mark.plumbing
+def test_a_day_without_one_axis_beside_full_days_is_diagnosed(bench, tmp_path, sim_csv_dir, capsys):
+    # a production day whose file has no y_um (its sensor off): y had fewer held-out blocks than x and z, and
+    # pooling their per-block figures in the check of what passes with the paths held died (ValueError:
+    # operands could not be broadcast together with shapes (24,) (21,))
+    import json
+
+    from sim_shared import SIM_EXPERIMENTS
+
+    from gateway.cli import main
+    from gateway.recording import write_recording
+    from simulators.machine import simulate
+
+    text = list(bench.new_plan("none", 1, 4).days.values())[1]
+    rec = simulate(parse_scenario_text(text, source="day2")).recording()
+    path = tmp_path / "day2-no-y.csv"
+    write_recording(path, time_s=rec.time_s, columns={**rec.factors, "x_um": rec.displacement["x"],
+                                                      "z_um": rec.displacement["z"]})
+    exps = [str(sim_csv_dir / f"{n}.csv") for n in SIM_EXPERIMENTS]
+    assert main(["diagnose", "--profile", "sim-vmc", *exps, str(sim_csv_dir / "production-day.csv"), str(path),
+                 "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    held = doc["held_out"]["before"]
+    assert 0 < held["y"]["windows"] < held["x"]["windows"] == held["z"]["windows"]  # y judged where it is measured
+    assert not any("nan" in c for c in doc["conclusions"])

@@ -209,12 +209,13 @@ class _Axis:
     peak_um: float = math.inf
     _fold: Fold | None = None
     generation: int = 0  #: how many times columns were fixed: a hypothesis's scores hold while it stays the same
+    n_blocks: int = 0  #: the held-out blocks of the stack: every axis's per-block figures line up on them
 
     @property
     def fold(self) -> Fold:
         """The cross-validation design of the current fixed columns (built once a round)."""
         if self._fold is None:
-            self._fold = Fold(r=self.r, block=self.block, fixed=np.column_stack(self.fixed))
+            self._fold = Fold(r=self.r, block=self.block, fixed=np.column_stack(self.fixed), k=self.n_blocks)
         return self._fold
 
     def fix(self, cols: Sequence[np.ndarray]) -> None:
@@ -268,7 +269,8 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
         fixed = [c[rows] for c in offsets if np.any(c[rows])] + [c[rows] for c in arts]
         own = corrections.get(name, []) if isinstance(corrections, Mapping) else corrections
         fixed += [c[rows] for c in own if np.any(c[rows])]
-        axes.append(_Axis(i, name, rows, r, block[rows], fixed, relevance, arts, peak_um=peaks.get(i, math.inf)))
+        axes.append(_Axis(i, name, rows, r, block[rows], fixed, relevance, arts, peak_um=peaks.get(i, math.inf),
+                          n_blocks=int(block.max()) + 1))
     # the same axes with the identified paths held in place of the corrections (the check of what passes)
     held_axes: list[_Axis] = []
     if held is not None:
@@ -276,7 +278,7 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
             fixed = [c[ax.rows] for c in offsets if np.any(c[ax.rows])] + [c[ax.rows] for c in ax.artefacts]
             fixed += [c[ax.rows] for c in held.get(ax.name, []) if np.any(c[ax.rows])]
             held_axes.append(_Axis(ax.index, ax.name, ax.rows, ax.r, ax.block, fixed, relevance, ax.artefacts,
-                                   peak_um=ax.peak_um))
+                                   peak_um=ax.peak_um, n_blocks=ax.n_blocks))
     trials: list[Trial] = []
     accepted: list[Trial] = []
     remaining = list(hypotheses)

@@ -65,10 +65,12 @@ class Fold:
     only its own columns' products.
     """
 
-    def __init__(self, *, r: np.ndarray, block: np.ndarray, fixed: np.ndarray) -> None:
+    def __init__(self, *, r: np.ndarray, block: np.ndarray, fixed: np.ndarray, k: int | None = None) -> None:
         self.r = r
         self.block = block
-        self.k = int(block.max()) + 1  #: held-out blocks; burn-in rows sum into slot k
+        #: held-out blocks (``k``: those of every axis, so that per-block figures of axes line up where one is
+        #: measured in fewer: a day without its column); burn-in rows sum into slot k
+        self.k = max(int(block.max()) + 1, k or 0)
         # contiguous runs of one block, and the slot each run's sums land in
         self.starts = np.concatenate([[0], np.flatnonzero(np.diff(block)) + 1])
         self.stops = np.append(self.starts[1:], len(r))
