@@ -161,8 +161,16 @@ def test_a_new_users_slips_get_one_line_that_says_what_to_do(random_spindle, tmp
     one = tmp_path / "one.csv"
     one.write_text("\n".join(lines[: k + 2]) + "\n")
     assert main(["diagnose", "--profile", "sim-vmc", str(random_spindle), "--validate", str(one)]) == 2
-    assert f"--validate {one}: 1 window(s) with measured displacement: a validation needs at least 10" in \
-        capsys.readouterr().err
+    assert (f'--validate {one}: 1 window(s) with measured displacement ("x_um", "y_um", "z_um"): a validation '
+            "needs at least 10") in capsys.readouterr().err
+    # one without any displacement column: refused the same way (it may lack one axis, not all)
+    blind = tmp_path / "blind.csv"
+    cols = lines[k].split(",")
+    keep = [i for i, c in enumerate(cols) if not c.endswith("_um")]
+    blind.write_text("\n".join([",".join(cols[i] for i in keep), *(",".join(ln.split(",")[i] for i in keep)
+                                                                  for ln in body)]) + "\n")
+    assert main(["diagnose", "--profile", "sim-vmc", str(random_spindle), "--validate", str(blind)]) == 2
+    assert f"--validate {blind}: 0 window(s) with measured displacement" in capsys.readouterr().err
 
 
 def test_files_of_one_name_in_two_folders_are_told_apart_wherever_the_report_names_a_recording(random_spindle,

@@ -117,7 +117,9 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.output) if args.output else None
     if out is not None and (out / "report.md").exists() and not args.force:
         raise GatewayError(f"{out}/report.md exists: pass --force to overwrite it")
-    vrecs = read_recordings(args.validate, profile, period_s=args.period_s, require_displacement=True) \
+    # a validation day may lack an axis (its sensor off), as a diagnosed one may: it is judged on the others;
+    # one with no measured displacement at all is refused below
+    vrecs = read_recordings(args.validate, profile, period_s=args.period_s, require_displacement=False) \
         if args.validate else []
     if args.split_by:
         recs, vrecs = split_those_with(recs, args.split_by, vrecs), split_those_with(vrecs, args.split_by, recs)
@@ -134,8 +136,9 @@ def run(args: argparse.Namespace) -> int:
         measured = int(np.isfinite(np.vstack(list(v.displacement.values()))).any(axis=0).sum()) \
             if v.displacement else 0
         if measured < MIN_VALIDATION_WINDOWS:
-            raise UsageError(f"--validate {v.source}: {measured} window(s) with measured displacement: a validation "
-                             f"needs at least {MIN_VALIDATION_WINDOWS} to say anything")
+            columns = ", ".join(f'"{c}"' for c in profile.recording.displacement_columns.values())
+            raise UsageError(f"--validate {v.source}: {measured} window(s) with measured displacement ({columns}): a "
+                             f"validation needs at least {MIN_VALIDATION_WINDOWS} to say anything")
         same = fitted.get(v.fingerprint(model.factors))
         if same is not None:
             raise UsageError(f"--validate {v.source}: the same data as {same}, which is diagnosed: validation takes "
