@@ -573,7 +573,7 @@ def test_estimate_says_when_a_recording_follows_another_it_was_given_with(tmp_pa
             "the hours in the gap note count from its start)") in e["notes"]
 
 
-def test_an_hour_of_noise_and_a_spike_at_rest_is_not_taken_for_a_warm_start(tmp_path, sim_csv_dir, capsys):
+def test_an_hour_of_noise_a_spike_and_a_step_at_rest_is_not_taken_for_a_warm_start(tmp_path, sim_csv_dir, capsys):
     # two windows of noise 3.5 sigma apart, one up, one down, spread the hour 7 sigma: the raw spread said "moves
     # 0.7 um in the first hour where the model predicts 0 um" of a machine that rests all along (41 of 686 bench
     # recordings that start at rest said so)
@@ -584,6 +584,7 @@ def test_an_hour_of_noise_and_a_spike_at_rest_is_not_taken_for_a_warm_start(tmp_
     measured = {f"{a}_um": 0.05 * rng.standard_normal(len(night)) for a in night.displacement}
     measured["z_um"][[20, 40]] += (0.35, -0.35)
     measured["x_um"][30] += 3.0  # and one spike of a sensor (a running mean of 5 windows still moved 0.6 um)
+    measured["y_um"][45:] += 5.0  # and a sensor knocked at 45 min: a step of 5 um in one window, not heat
     path = tmp_path / "night.csv"
     write_recording(path, time_s=night.time_s, columns={**night.factors, **measured})
     assert main(["estimate", "--profile", "sim-vmc", str(path), "--json"]) == 0
