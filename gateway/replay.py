@@ -167,7 +167,9 @@ def estimate(
                    "its start" if gap_s > 0.5 * rec.period_s else "")
         notes.append(f"started in the state {history.source} left (its {len(history)} windows run first{between})")
     if initial_state == "fit":
-        est, text = _fit_initial_state(model, rec.period_s, time_s, est, measured, du)
+        # whether it starts at rest is the check estimate's note and --validate make (one verdict, not two)
+        at_rest = history is None and not starts_warm(model, rec, gap_policy=gap_policy)
+        est, text = _fit_initial_state(model, rec.period_s, time_s, est, measured, du, at_rest=at_rest)
         notes.append(text)
     metrics: dict[str, AxisFigures] = {}
     offsets: dict[str, float] = {}
@@ -210,7 +212,7 @@ def coverage_json(check: CoverageCheck, window_s: float) -> dict[str, object]:
 
 
 def _fit_initial_state(model: ThermalModel, period_s: float, time_s: np.ndarray, est: np.ndarray,
-                       measured: np.ndarray, du: np.ndarray) -> tuple[np.ndarray, str]:
+                       measured: np.ndarray, du: np.ndarray, *, at_rest: bool = False) -> tuple[np.ndarray, str]:
     """``est`` plus the model's free response from the state a heat history leaves, fitted to the first hour.
 
     The state is not free: a machine is warm because it worked, so its state is one the model's own inputs
@@ -222,6 +224,9 @@ def _fit_initial_state(model: ThermalModel, period_s: float, time_s: np.ndarray,
     after it. A free decay per axis fitted to the hour (what this did before) extrapolated slow modes far off:
     the bundled production day cut at 8, 10, 12 and 14 h, z RMS 30.8 / 6.2 / 35.3 / 7.1 um that way, 10.1 / 1.0 /
     6.2 / 1.9 um this way, 41.7 / 22.1 / 33.4 / 16.1 um started at rest (the bundled model).
+
+    ``at_rest``: the recording seems to start at rest (:func:`starts_warm` finds nothing): the note says the
+    fitted state may only follow noise and small misses, not that it does not start at rest.
     """
     import scipy.optimize
 
@@ -277,10 +282,9 @@ def _fit_initial_state(model: ThermalModel, period_s: float, time_s: np.ndarray,
               "the whole recording lies in that hour: its figures score the fit, not the model")
     # a recording that starts at rest gets a state fitted all the same (heat only adds, but noise and small
     # misses of the model's draw it): said, not called a warm start (the bundled day from 0 h: z 4.01 -> 4.57 um)
-    start = ("the recording does not start at rest" if _first_hour_misses(model.axes, time_s, measured, est, out) else
-             f"yet the recording seems to start at rest (from rest no axis's first hour is missed by over "
-             f"{WARM_MISS_SIGMA:g}x its noise where the fitted state follows it to a third): the state may only "
-             "follow noise and small misses of the model (--initial-state rest)")
+    start = ("yet the recording seems to start at rest (by the check estimate makes of a start at rest): the state "
+             "may only follow noise and small misses of the model (--initial-state rest)" if at_rest else
+             "the recording does not start at rest")
     return out, (f"initial state estimated from the first {INITIAL_FIT_S / 3600:g} h of measured displacement on "
                  f"{', '.join(fitted)}: the state the model's inputs leave when held before the start ({spans} "
                  f"back, each up to {INITIAL_FIT_LEVEL:g}x its largest in the experiments or here){together}: "

@@ -460,9 +460,10 @@ def test_estimate_says_when_a_recording_it_starts_at_rest_seems_to_start_warm(tm
     # just started nor one warm from an unknown day; the note says what each option does instead
     assert said.startswith("it seems not to start at rest (speed is +")
     assert ("from its rest level at the first window), and is estimated in equilibrium with its first window (as if "
-            "it had worked so for ever): --initial reference starts it from the model's reference levels") in said
-    assert said.endswith("--initial reference --initial-state fit estimates its state from its first hour (what "
-                         "diagnose --validate does)")
+            "it had worked so for ever): --initial reference --initial-state fit estimates its state from its first "
+            "hour, as heat since the model's reference levels (what diagnose --validate does)") in said
+    assert said.endswith("--initial reference alone starts it cold at those levels, right only for a machine that has "
+                         "just started")
     assert not any("seems not to start at rest" in n for n in notes[str(calm)])
     figures = {}
     for opts in ([], ["--initial", "reference"], ["--initial", "reference", "--initial-state", "fit"]):
@@ -487,8 +488,8 @@ def test_a_recording_cut_mid_work_is_estimated_from_the_state_its_first_hour_sho
         figures[state] = {e["recording"]: e for e in json.loads(capsys.readouterr().out)}
     # the whole day starts after a night at rest: fitted all the same when asked, but not called a warm start
     (said,) = [n for n in figures["fit"][whole]["notes"] if "held before the start" in n]
-    assert ": yet the recording seems to start at rest (from rest no axis's first hour is missed by over 4x its " \
-           "noise" in said, said
+    assert ": yet the recording seems to start at rest (by the check estimate makes of a start at rest): the state " \
+           "may only follow noise" in said, said
     for path in cuts:
         fit, rest = figures["fit"][path], figures["rest"][path]
         (said,) = [n for n in fit["notes"] if "the state the model's inputs leave when held before the start" in n]

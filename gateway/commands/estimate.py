@@ -188,9 +188,10 @@ def _not_at_rest(why: str, *, working: bool, initial: str) -> str:
     """
     if working and initial == "first":
         return (f"it seems not to start at rest ({why}), and is estimated in equilibrium with its first window (as "
-                "if it had worked so for ever): --initial reference starts it from the model's reference levels "
-                "(a machine that has just started), and --initial reference --initial-state fit estimates its "
-                "state from its first hour (what diagnose --validate does)")
+                "if it had worked so for ever): --initial reference --initial-state fit estimates its state from "
+                "its first hour, as heat since the model's reference levels (what diagnose --validate does); "
+                "--initial reference alone starts it cold at those levels, right only for a machine that has just "
+                "started")
     return (f"it seems not to start at rest ({why}), and is estimated from rest: --initial-state fit estimates its "
             "initial state from its first hour")
 
