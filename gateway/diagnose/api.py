@@ -644,7 +644,9 @@ def validation_summary(d: Diagnosis, validations: Sequence[Validation]) -> str:
                for ms in ([b for _, b, _ in pairs], [f for _, _, f in pairs])]
         pooled.append(f"{a} {rms[0]:.3g} -> {rms[1]:.3g} um")
         # worse by over a tenth and by more than a hundredth of a micrometre: a real loss, not a rounding
-        worse += [f"{v.label} {a} {b.rms_um:.3g} -> {f.rms_um:.3g} um" for v, b, f in pairs
+        worse += [f"{v.label} {a} {b.rms_um:.3g} -> {f.rms_um:.3g} um"
+                  + (" (its state fitted to its first hour: the fit differs too)"
+                     if v.settings.get("initial_state") == "fit" else "") for v, b, f in pairs
                   if f.rms_um > 1.1 * b.rms_um and f.rms_um - b.rms_um > 0.01]
     if not pooled:
         return ""
