@@ -563,6 +563,10 @@ def test_estimate_says_when_a_recording_follows_another_it_was_given_with(tmp_pa
     (e,) = json.loads(capsys.readouterr().out)
     assert not any("starts one window after" in n for n in e["notes"])
     assert f"started in the state {head} left (its 600 windows run first)" in e["notes"]
+    # following the hint with the first file kept among the recordings: said, not "ends ... not before it starts"
+    assert main(["estimate", "--profile", "sim-vmc", "--history", str(head), str(head), str(tail)]) == 2
+    assert (f"--history {head}: the same data as the recording {head}: a history runs before the recordings (give "
+            "it only after --history)") in capsys.readouterr().err
     # a history that ends hours before: the gap note's hours count from the history's start, said so
     early = tmp_path / "to-6h.csv"
     write_recording(early, time_s=first.time_s[:360], columns={

@@ -133,6 +133,13 @@ def run(args: argparse.Namespace) -> int:
         recs = split_those_with(recs, args.split_by)
     paths = prediction_paths(args.output, [r.source for r in recs], force=args.force) if args.output else []
     history = read_history(args, profile)
+    if history is not None:
+        # given as its own history too (a user following "--history A" kept A among the recordings): the history
+        # must end before it starts, which said "ends at t=36000 s, not before A starts" of one file
+        same = [r.source for r in recs if r.fingerprint(model.factors) == history.fingerprint(model.factors)]
+        if same:
+            raise UsageError(f"--history {args.history}: the same data as the recording {same[0]}: a history runs "
+                             "before the recordings (give it only after --history)")
     if args.probes:
         return _run_probed(args, profile, model, model_path, recs, history, paths)
     ests = []
