@@ -165,6 +165,10 @@ def estimate(
         gap_s = float(rec.time_s[0] - history.time_s[-1]) - rec.period_s if len(history) and len(rec) else 0.0
         between = (f"; it ends {gap_s / 3600:.3g} h before this one starts, and the hours in the gap note count from "
                    "its start" if gap_s > 0.5 * rec.period_s else "")
+        working = _away_from_rest(model, history, -1, "last") if between and gap_policy == "hold" else ""
+        if working:  # held over the gap: hours more of work the machine may not have done (a helper's 29 um RMS)
+            between += (f"; {working}, and the gap policy hold keeps it so over the gap: --gap-policy reference "
+                        "takes the machine idle there")
         notes.append(f"started in the state {history.source} left (its {len(history)} windows run first{between})")
     if initial_state == "fit":
         # whether it starts at rest is the check estimate's note and --validate make (one verdict, not two)
@@ -378,17 +382,22 @@ def works_at_start(model: ThermalModel, rec: Recording) -> str:
     does not say (a cold machine starting a job at 1500 rpm: z 36.9 um RMS in equilibrium with that window,
     0.25 um from the reference levels).
     """
+    return _away_from_rest(model, rec, 0, "first")
+
+
+def _away_from_rest(model: ThermalModel, rec: Recording, at: int, which: str) -> str:
+    """A factor over a tenth of its covered range away from its rest level at ``rec``'s finite value ``at``."""
     covered = model.info.get("deviation_range", {}) or {}
     for f in model.factors:
         v = rec.factors.get(f)
         if v is None or not np.isfinite(v).any():
             continue
-        first = float(v[np.isfinite(v)][0]) - float(model.reference.get(f, 0.0))
+        level = float(v[np.isfinite(v)][at]) - float(model.reference.get(f, 0.0))
         lo, hi = covered.get(f, [0.0, 0.0])
         span = max(abs(float(lo)), abs(float(hi)))
-        if span > 0 and abs(first) > 0.1 * span:
+        if span > 0 and abs(level) > 0.1 * span:
             unit = f" {model.units[f]}" if model.units.get(f) else ""
-            return f"{f} is {first:+.4g}{unit} from its rest level at the first window"
+            return f"{f} is {level:+.4g}{unit} from its rest level at the {which} window"
     return ""
 
 

@@ -576,6 +576,17 @@ def test_estimate_says_when_a_recording_follows_another_it_was_given_with(tmp_pa
     assert any(n.startswith("240 missing window(s) in 1 gap(s) (the longest: 240 windows from 6 h)") for n in e["notes"])
     assert (f"started in the state {early} left (its 360 windows run first; it ends 4 h before this one starts, and "
             "the hours in the gap note count from its start)") in e["notes"]
+    # ... and one that ends while the machine works: the gap policy holds that work over the gap, said
+    busy = tmp_path / "to-8h.csv"
+    write_recording(busy, time_s=first.time_s[:480], columns={
+        **{k: v[:480] for k, v in first.factors.items()}, **{f"{a}_um": v[:480] for a, v in first.displacement.items()}})
+    assert first.factors["spindle_speed"][479] > 0
+    assert main(["estimate", "--profile", "sim-vmc", "--history", str(busy), str(tail), "--json"]) == 0
+    (e,) = json.loads(capsys.readouterr().out)
+    (said,) = [n for n in e["notes"] if n.startswith(f"started in the state {busy} left")]
+    assert re.search(r"; it ends 2 h before this one starts, .*; \w+ is \+[\d.]+ \S+ from its rest level at the last "
+                     r"window, and the gap policy hold keeps it so over the gap: --gap-policy reference takes the "
+                     r"machine idle there\)$", said), said
 
 
 def test_an_hour_of_noise_a_spike_and_a_step_at_rest_is_not_taken_for_a_warm_start(tmp_path, sim_csv_dir, capsys):
