@@ -596,9 +596,23 @@ def _words(name: str) -> list[str]:
 
 
 def displacement_lookalikes(rec: Recording, displacement_columns: Mapping[str, str]) -> dict[str, list[str]]:
-    """Per axis not measured in ``rec``: its unread columns whose name's first word is the axis column's."""
-    return {axis: [h for h in (*rec.extras, *rec.text) if _words(h)[:1] == _words(c)[:1]]
-            for axis, c in displacement_columns.items() if axis not in rec.displacement}
+    """Per axis not measured in ``rec``: its unread columns that may be it.
+
+    Those whose name's first word is the axis column's (``x_mm``, ``x``, ``x_disp_um``), or that hold the axis's
+    word beside a length unit or "disp" (``disp_x_um``), or the axis's word run together with one (``dx_um``,
+    ``xdisp``, ``xum``).
+    """
+    units = {"um", "mm", "micron", "microns", "disp", "displacement"}
+    out = {}
+    for axis, c in displacement_columns.items():
+        if axis in rec.displacement:
+            continue
+        head = _words(c)[:1]
+        word = head[0] if head else axis.lower()
+        joined = {f"d{word}", f"{word}disp", f"disp{word}", f"{word}um", f"{word}mm"}
+        out[axis] = [h for h in (*rec.extras, *rec.text) if (w := _words(h))
+                     and (w[:1] == head or (word in w and units & set(w)) or joined & set(w))]
+    return out
 
 
 def unread_displacement(rec: Recording, displacement_columns: Mapping[str, str]) -> list[str]:
