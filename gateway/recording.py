@@ -610,7 +610,8 @@ def displacement_lookalikes(rec: Recording, displacement_columns: Mapping[str, s
         head = _words(c)[:1]
         word = head[0] if head else axis.lower()
         joined = {f"d{word}", f"{word}disp", f"disp{word}", f"{word}um", f"{word}mm"}
-        out[axis] = [h for h in (*rec.extras, *rec.text) if (w := _words(h))
+        # probe columns (probe_x_um, probe_sd_um: a probed day's measurement, read as such) are no look-alikes
+        out[axis] = [h for h in (*rec.extras, *rec.text) if (w := _words(h)) and w[0] != "probe"
                      and (w[:1] == head or (word in w and units & set(w)) or joined & set(w))]
     return out
 

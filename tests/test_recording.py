@@ -159,8 +159,8 @@ def test_columns_that_may_be_a_missing_axis_are_found_and_others_are_not():
     from gateway.recording import displacement_lookalikes
 
     maybe = ["x", "X", "x_mm", "x_disp_um", "disp_x_um", "dx_um", "xdisp", "xum", "x_micron", "x_displacement"]
-    other = ["xz_um", "max_load", "y_pos", "index", "x2"]
-    rec = read(f"time_s,speed_rpm,i1_sq,z_um,{','.join(maybe + other)}\n60,0,1,0.5,{','.join(['1'] * 15)}\n",
+    other = ["xz_um", "max_load", "y_pos", "index", "x2", "probe_x_um", "probe_sd_um"]
+    rec = read(f"time_s,speed_rpm,i1_sq,z_um,{','.join(maybe + other)}\n60,0,1,0.5,{','.join(['1'] * 17)}\n",
                require_displacement=False)
     found = displacement_lookalikes(rec, {"x": "x_um", "z": "z_um"})
     assert found == {"x": maybe}  # z is measured: nothing looked for
