@@ -78,6 +78,9 @@ class Adequacy:
     # error of one that starts warm is its start's as much as the model's
     not_at_rest: dict[str, str] = field(default_factory=dict)
     without: Adequacy | None = None
+    # every recording (seen or not) that seems not to start at rest, when they are a minority: a drift at rest
+    # only in them may be the machine settling from its start (when all are, a disturbance is likelier)
+    settling: tuple[str, ...] = ()
 
     @property
     def judged(self) -> bool:
@@ -135,7 +138,10 @@ class Adequacy:
                            f"change, in {d.drifting} of {d.stretches} resting stretches (up to {d.largest_um:.3g} um, "
                            f"{d.rate_um_h:+.2g} um/h; {', '.join(d.recordings[:4])}"
                            f"{', ...' if len(d.recordings) > 4 else ''}): a disturbance no factor carries (room "
-                           "temperature, coolant, a neighbouring machine), or heat slower than every mode of the model")
+                           "temperature, coolant, a neighbouring machine), or heat slower than every mode of the model"
+                           + ("; but only in recordings that seem not to start at rest, where it may be the machine "
+                              "settling from its start" if self.settling and set(d.recordings) <= set(self.settling)
+                              else ""))
         return out
 
 
@@ -163,7 +169,10 @@ def assess(stack: Stack, model: ThermalModel, sigma_um: dict[str, float],
     axes = _judge(stack, y_all, unseen, sigma_um)
     drift = {a: resting_drift(stack, i, sigma_um.get(a, 0.0), y=y_all[i]) for i, a in enumerate(stack.axes)
              if np.isfinite(stack.y[i]).any()}
-    out = Adequacy(unseen=tuple(stack.labels[r] for r in unseen), axes=axes, drift=drift, training=training)
+    settling = tuple(stack.labels[r] for r in (not_at_rest or {})) if 2 * len(not_at_rest or {}) < len(stack.bounds) \
+        else ()
+    out = Adequacy(unseen=tuple(stack.labels[r] for r in unseen), axes=axes, drift=drift, training=training,
+                   settling=settling)
     warm = {r: why for r, why in (not_at_rest or {}).items() if r in unseen}
     if warm and not out.fit and len(warm) < len(unseen):
         rest = [r for r in unseen if r not in warm]
