@@ -88,6 +88,17 @@ def split_part(source: str) -> tuple[str, str] | None:
     return (m.group(1), m.group(2)) if m else None
 
 
+def runs_on_from(prev: Recording, rec: Recording) -> bool:
+    """Whether ``rec`` starts one window after ``prev`` ends: the machine ran on from one into the other.
+
+    A run of a file split by a column (:func:`split_part`) never runs on from another recording nor into one:
+    each starts in its own equilibrium, though the times of a file of days run on across the cut.
+    """
+    return bool(len(prev) and len(rec) and not split_part(prev.source) and not split_part(rec.source)
+                and abs(prev.period_s - rec.period_s) < 1e-9 * rec.period_s
+                and 0.5 * rec.period_s < rec.time_s[0] - prev.time_s[-1] <= 1.5 * rec.period_s)
+
+
 def split_file(source: str) -> tuple[str, tuple[str, str] | None]:
     """(the file, :func:`split_part`) of a source: ``file.csv[day=7]`` is ``("file.csv", ("day", "7"))``."""
     part = split_part(source)
@@ -617,10 +628,11 @@ def displacement_lookalikes(rec: Recording, displacement_columns: Mapping[str, s
 
 
 def unread_displacement(rec: Recording, displacement_columns: Mapping[str, str]) -> list[str]:
-    """For each axis not measured in ``rec`` whose column name's first word an unread column shares, a warning.
+    """A warning for each axis not measured in ``rec`` beside unread columns that may be it.
 
-    ``x_mm``, ``x_disp_um`` or ``x`` beside no ``x_um`` read as no measurement of x, which the estimate's figures
-    then leave out without a word; the user is told which columns were not read (they may be something else).
+    The columns are :func:`displacement_lookalikes`'s: ``x_mm``, ``x_disp_um`` or ``x`` beside no ``x_um`` read
+    as no measurement of x, which the estimate's figures then leave out without a word; the user is told which
+    columns were not read (they may be something else).
     """
     out = []
     for axis, alike in displacement_lookalikes(rec, displacement_columns).items():

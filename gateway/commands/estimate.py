@@ -24,7 +24,7 @@ from gateway.commands._common import (
 from gateway.errors import GatewayError, UsageError
 from gateway.prepare import INITIAL_CHOICES
 from gateway.profile import load_profile
-from gateway.recording import continued, recording_name, split_part
+from gateway.recording import continued, recording_name, runs_on_from, split_part
 from gateway.replay import (
     ALIGN_CHOICES,
     INITIAL_STATES,
@@ -150,9 +150,7 @@ def run(args: argparse.Namespace) -> int:
         if history is None and not args.period_s:
             # the one given just before it ended one window before it starts: the machine did not rest between
             # them, yet this one starts at rest (diagnose --validate carries such a one; here --history does)
-            before = [p for p in recs if p is not r and not split_part(p.source) and not split_part(r.source)
-                      and len(p) and len(r) and abs(p.period_s - r.period_s) < 1e-9 * r.period_s
-                      and 0.5 * r.period_s < r.time_s[0] - p.time_s[-1] <= 1.5 * r.period_s]
+            before = [p for p in recs if p is not r and runs_on_from(p, r)]
             if before:
                 e = dataclasses.replace(e, notes=(*e.notes, f"it starts one window after {before[0].source} ends, yet "
                                                             f"is estimated on its own: --history {before[0].source} "

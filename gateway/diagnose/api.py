@@ -53,7 +53,7 @@ from gateway.model.envelope import envelope_of
 from gateway.model.model import ThermalModel
 from gateway.prepare import prepare
 from gateway.profile import Profile
-from gateway.recording import Recording, continued, split_part
+from gateway.recording import Recording, continued, runs_on_from, split_part
 from gateway.replay import AxisFigures, Estimate, estimate, starts_warm, works_at_start
 
 
@@ -669,10 +669,7 @@ def _preceding(rec: Recording, pool: Sequence[Recording]) -> list[Recording]:
     chain: list[Recording] = []
     cur = rec
     while True:
-        prev = next((p for p in pool if p is not cur and p not in chain and len(p) and len(cur)
-                     and not split_part(p.source) and not split_part(cur.source)
-                     and abs(p.period_s - cur.period_s) < 1e-9 * cur.period_s
-                     and 0.5 * cur.period_s < cur.time_s[0] - p.time_s[-1] <= 1.5 * cur.period_s), None)
+        prev = next((p for p in pool if p is not cur and p not in chain and runs_on_from(p, cur)), None)
         if prev is None:
             return chain[::-1]
         chain.append(prev)

@@ -351,7 +351,7 @@ def choose(scores: dict[str, GridScores], keys: dict[str, Sequence[object]] | No
     axes = list(scores)
     if not axes:
         return {}
-    k = max(sc.train.shape[1] for sc in scores.values())  # the folds of the axes measured in every block
+    k = next(iter(scores.values())).train.shape[1]
     choice: dict[str, np.ndarray] = {}
     best: dict[str, int] = {}
     if keys is None:
@@ -366,26 +366,21 @@ def choose(scores: dict[str, GridScores], keys: dict[str, Sequence[object]] | No
             kv = np.array([values.index(v) for v in keys[a]])
             for i in range(len(values)):
                 sel = kv == i
-                if scores[a].train.shape[1] == k:
-                    tot_f[i] += scores[a].train[sel].min(axis=0) if sel.any() else np.inf
+                tot_f[i] += scores[a].train[sel].min(axis=0) if sel.any() else np.inf
                 tot_a[i] += scores[a].full[sel].min() if sel.any() else np.inf
         v_f = np.argmin(tot_f, axis=0)
         v_a = int(np.argmin(tot_a))
         for a in axes:
             kv = np.array([values.index(v) for v in keys[a]])
-            if scores[a].train.shape[1] == k:
-                tr = np.where(kv[:, None] == v_f[None, :], scores[a].train, np.inf)
-                choice[a] = np.argmin(tr, axis=0)
-            else:  # its folds are not the others' (a recording measures it on fewer blocks): chosen alone there
-                choice[a] = np.argmin(scores[a].train, axis=0)
+            tr = np.where(kv[:, None] == v_f[None, :], scores[a].train, np.inf)
+            choice[a] = np.argmin(tr, axis=0)
             best[a] = int(np.argmin(np.where(kv == v_a, scores[a].full, np.inf)))
     out = {}
     for a in axes:
         sc = scores[a]
         c = choice[a]
-        folds = np.arange(sc.train.shape[1])
-        none_ok = ~np.isfinite(sc.train[c, folds])
-        out[a] = GridFit(held=np.where(none_ok, sc.without, sc.held[c, folds]),
+        none_ok = ~np.isfinite(sc.train[c, np.arange(k)])
+        out[a] = GridFit(held=np.where(none_ok, sc.without, sc.held[c, np.arange(k)]),
                          theta_fold=np.where(none_ok, -1, c),
                          gains_fold=_padded([sc.gains_fold[g][f] for f, g in enumerate(c)]), best=best[a],
                          gains=sc.gains_all[best[a]], sse=float(sc.full[best[a]]),
