@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/diagnose.py [--quick] [--cases a,b,...] [--variants 1,2,3] [--jobs N]
                                        [--report DIR] [--protocol new|old|both] [--seen all|days] [--no-real]
-                                       [--cache DIR] [--blocks K] [--days N]
+                                       [--cache DIR] [--blocks K] [--days N] [--cut-days H]
 
 Only what a user has is used: the ``cncgw`` commands, run in this process through ``gateway.cli.main``
 (``simulate record``, ``identify``, ``diagnose``, ``estimate --json``), so the bench keeps working while
@@ -553,8 +553,13 @@ def _pooled(d: dict[str, float]) -> float:
 
 
 def run_bench_case(protocol: str, effect_name: str, variant: int, cache: Path, report: Path | None,
-             seen_days_only: bool = False, blocks: int | None = None, n_days: int = 4) -> Row:
-    """Simulate (cached), identify, diagnose (timed) and score one case through the command line."""
+             seen_days_only: bool = False, blocks: int | None = None, n_days: int = 4,
+             cut_h: float | None = None) -> Row:
+    """Simulate (cached), identify, diagnose (timed) and score one case through the command line.
+
+    ``cut_h``: the production days are given to diagnose from ``cut_h`` hours on (a gateway started mid-shift):
+    those that work at that hour start warm. The baseline's fitness is still judged on the whole days.
+    """
     row = Row(protocol=protocol, effect=effect_name, variant=variant)
     effect = EFFECTS[effect_name]
     plan = new_plan(effect_name, variant, n_days) if protocol == "new" else old_plan(effect_name, variant)
@@ -570,6 +575,9 @@ def run_bench_case(protocol: str, effect_name: str, variant: int, cache: Path, r
             run_cli(["identify", "--profile", PROFILE, *exps, "-o", model, "--force"])
             row.identify_s = time.perf_counter() - t0
             seen = [*exps, *days] if protocol == "new" and not seen_days_only else days
+            if cut_h is not None:
+                cut = {d: cut_days_file(d, cut_h, work / "cut") for d in days}
+                seen = [cut.get(s, s) for s in seen]
             t0, c0 = time.perf_counter(), time.process_time()
             run_cli(["diagnose", "--profile", PROFILE, "--model", model, *seen, "-o", out, "--force",
                      *(["--blocks", str(blocks)] if blocks else []),
@@ -598,6 +606,20 @@ def run_bench_case(protocol: str, effect_name: str, variant: int, cache: Path, r
         except CommandFailed as exc:
             row.error = str(exc)
     return row
+
+
+def cut_days_file(day: Path, cut_h: float, folder: Path) -> Path:
+    """``day`` from ``cut_h`` hours after its first row on, as ``folder/<same name>`` (comments kept)."""
+    lines = day.read_text().splitlines()
+    body = [k for k, ln in enumerate(lines) if ln and not ln.startswith("#")]
+    head = lines[body[0]].split(",")
+    t_col = head.index("time_s")
+    t0 = float(lines[body[1]].split(",")[t_col])
+    keep = [lines[k] for k in body[1:] if float(lines[k].split(",")[t_col]) > t0 + cut_h * 3600.0]
+    folder.mkdir(parents=True, exist_ok=True)
+    out = folder / day.name
+    out.write_text("\n".join([ln for ln in lines[: body[0]] if ln.startswith("#")] + [lines[body[0]]] + keep) + "\n")
+    return out
 
 
 # ------------------------------------------------------------------------------------------- judging ---
@@ -913,6 +935,9 @@ def main() -> int:
     ap.add_argument("--blocks", type=int, help="held-out blocks passed to cncgw diagnose (default: its own)")
     ap.add_argument("--days", type=int, default=4, choices=range(1, 21), metavar="N",
                     help="production days diagnosed in the new protocol (1-20, default 4)")
+    ap.add_argument("--cut-days", type=float, metavar="H",
+                    help="new protocol: give diagnose the production days from H hours after midnight on "
+                         "(the days working at H start warm; default: whole days)")
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "cncgw-bench" / "diagnose"),
                     help="recordings cache (default ~/.cache/cncgw-bench/diagnose)")
     args = ap.parse_args()
@@ -932,7 +957,7 @@ def main() -> int:
         wanted = list(names)
         if "none" not in wanted:  # the reference of every variant
             wanted.append("none")
-        tasks += [(protocol, n, i, cache, report, args.seen == "days", args.blocks, args.days)
+        tasks += [(protocol, n, i, cache, report, args.seen == "days", args.blocks, args.days, args.cut_days)
                   for i in ids for n in wanted]
     print(f"{len(tasks)} cases ({', '.join(protocols)} protocol), {args.jobs} process(es); BLAS threads "
           f"{os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}; cache {cache}", flush=True)
@@ -961,6 +986,8 @@ def main() -> int:
     for protocol in protocols:
         seen = (f"{args.days} days diagnosed (--seen days)" if args.seen == "days"
                 else f"9 experiments + {args.days} days diagnosed")
+        if args.cut_days is not None:
+            seen += f", the days from {args.cut_days:g} h on"
         title = (f"NEW protocol: effect in every recording ({seen}), plant variants "
                  if protocol == "new" else
                  "OLD protocol: baseline from clean experiments on the nominal machine, effect in one 4-day "
