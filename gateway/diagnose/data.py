@@ -103,10 +103,7 @@ class Stack:
         (by content only: production files are named ``day1.csv`` on every machine, and a name alone would take
         an unseen day for a trained one).
         """
-        names = set(model.info.get("experiments", []) or [])
-        prints = set(model.info.get("experiment_fingerprints", []) or [])
-        prints |= set(model.info.get("production_fingerprints", []) or [])
-        return [name in names or (bool(fp) and fp in prints)
+        return [identified_on(model, name, fp)
                 for name, fp in zip(self.names, self.fingerprints or [""] * len(self.names), strict=True)]
 
     def rec_index(self) -> np.ndarray:
@@ -251,6 +248,14 @@ class Stack:
             cols.append(self.response(c, lag(tau_s)) if tau_s > 0 else c)
         self._cache[key] = cols
         return cols
+
+
+def identified_on(model: ThermalModel, name: str, fingerprint: str) -> bool:
+    """Whether ``model`` was identified on the recording ``name`` of ``fingerprint`` (:meth:`Stack.identified`)."""
+    names = set(model.info.get("experiments", []) or [])
+    prints = set(model.info.get("experiment_fingerprints", []) or [])
+    prints |= set(model.info.get("production_fingerprints", []) or [])
+    return name in names or (bool(fingerprint) and fingerprint in prints)
 
 
 def build_stack(model: ThermalModel, recordings: Sequence[Recording], *, gap_policy: str = "hold") -> Stack:
