@@ -232,6 +232,42 @@ def _fit_initial_state(model: ThermalModel, period_s: float, time_s: np.ndarray,
     ``at_rest``: the recording seems to start at rest (:func:`starts_warm` finds nothing): the note says the
     fitted state may only follow noise and small misses, not that it does not start at rest.
     """
+    fit = _history_fit(model, period_s, time_s, est, measured, du)
+    if fit is None:
+        return est.copy(), (f"initial state: no input or too few measured windows in the first "
+                            f"{INITIAL_FIT_S / 3600:g} h to estimate it from; started at rest")
+    w, _, responses, fitted = fit
+    out = est + sum((wk * r for wk, r in zip(w, responses, strict=True)), np.zeros_like(est))
+    moved = float(np.max(np.abs(out - est))) if out.size else 0.0
+    if moved < 1e-3:  # no heat history fits the first hour better than none (a cold start: heat only adds)
+        return est.copy(), (f"initial state: no state a heat history of the inputs leaves fits the first "
+                            f"{INITIAL_FIT_S / 3600:g} h better than rest; started at rest")
+    spans = ", ".join(f"{newer:g}-{older:g} h" for newer, older in zip((0.0, *INITIAL_HISTORY_H[:-1]),
+                                                                       INITIAL_HISTORY_H, strict=True))
+    together = ", fitted over the axes together" if len(fitted) > 1 else ""
+    rel = time_s[-1] - time_s[0] + (time_s[1] - time_s[0] if len(time_s) > 1 else 0.0)
+    scored = ("that hour scores the fit, not the model" if float(rel) > INITIAL_FIT_S else
+              "the whole recording lies in that hour: its figures score the fit, not the model")
+    # a recording that starts at rest gets a state fitted all the same (heat only adds, but noise and small
+    # misses of the model's draw it): said, not called a warm start (the bundled day from 0 h: z 4.01 -> 4.57 um)
+    start = ("yet the recording seems to start at rest (by the check estimate makes of a start at rest): the state "
+             "may only follow noise and small misses of the model (--initial-state rest)" if at_rest else
+             "the recording does not start at rest")
+    return out, (f"initial state estimated from the first {INITIAL_FIT_S / 3600:g} h of measured displacement on "
+                 f"{', '.join(fitted)}: the state the model's inputs leave when held before the start ({spans} "
+                 f"back, each up to {INITIAL_FIT_LEVEL:g}x its largest in the experiments or here){together}: "
+                 f"{start}; {scored}")
+
+
+def _history_fit(model: ThermalModel, period_s: float, time_s: np.ndarray, est: np.ndarray, measured: np.ndarray,
+                 du: np.ndarray, *, inputs: Sequence[int] | None = None
+                 ) -> tuple[np.ndarray, list[tuple[int, float, tuple[int, int]]], list[np.ndarray], list[str]] | None:
+    """The heat history :func:`_fit_initial_state` fits: (weights, what each is, their responses, axes fitted).
+
+    Each basis element is (input index, its level held, the history's span (newer, older) in windows back from
+    the start): the input held at ``weight`` x that level over that span. ``inputs``: the inputs a history may
+    hold (default: every input of the model). None: no input or too few measured windows to fit.
+    """
     import scipy.optimize
 
     rel = time_s - time_s[0] + (time_s[1] - time_s[0] if len(time_s) > 1 else 0.0)
@@ -242,7 +278,10 @@ def _fit_initial_state(model: ThermalModel, period_s: float, time_s: np.ndarray,
     back = round(INITIAL_HISTORY_H[-1] * 3600.0 / period_s)
     n = est.shape[1]
     responses: list[np.ndarray] = []
+    basis: list[tuple[int, float, tuple[int, int]]] = []
     for j, name in enumerate(names):
+        if inputs is not None and j not in inputs:
+            continue
         # the levels it had in the experiments or has in this recording, whichever reach further (before its start
         # the machine worked as it does in it)
         lo, hi = (float(v) for v in covered.get(name, (0.0, 0.0)))
@@ -250,15 +289,15 @@ def _fit_initial_state(model: ThermalModel, period_s: float, time_s: np.ndarray,
             lo, hi = min(lo, float(du[j].min())), max(hi, float(du[j].max()))
         for level in (v for v in (hi, lo) if v != 0.0):
             for newer, older in zip((0.0, *INITIAL_HISTORY_H[:-1]), INITIAL_HISTORY_H, strict=True):
+                span = (round(newer * 3600.0 / period_s), round(older * 3600.0 / period_s))
                 u = np.zeros((len(names), back + n))
-                u[j, back - round(older * 3600.0 / period_s): back - round(newer * 3600.0 / period_s)] = (
-                    INITIAL_FIT_LEVEL * level)
+                u[j, back - span[1]: back - span[0]] = INITIAL_FIT_LEVEL * level
                 responses.append(dm.simulate(u)[:, back:])
+                basis.append((j, INITIAL_FIT_LEVEL * level, span))
     ok = [first & np.isfinite(measured[i] - est[i]) for i in range(len(model.axes))]
     fitted = [a for i, a in enumerate(model.axes) if ok[i].sum() >= 5]
     if not responses or not fitted:
-        return est.copy(), (f"initial state: no input or too few measured windows in the first "
-                            f"{INITIAL_FIT_S / 3600:g} h to estimate it from; started at rest")
+        return None
     rows, target = [], []
     for i, a in enumerate(model.axes):
         if a not in fitted:
@@ -274,25 +313,39 @@ def _fit_initial_state(model: ThermalModel, period_s: float, time_s: np.ndarray,
     bounds = (np.r_[np.zeros(k), np.full(len(model.axes), -np.inf)] * scale,
               np.r_[np.ones(k), np.full(len(model.axes), np.inf)] * scale)
     w = scipy.optimize.lsq_linear(A / scale, b, bounds=bounds).x[:k] / scale[:k]
-    out = est + sum((wk * r for wk, r in zip(w, responses, strict=True)), np.zeros_like(est))
-    moved = float(np.max(np.abs(out - est))) if out.size else 0.0
-    if moved < 1e-3:  # no heat history fits the first hour better than none (a cold start: heat only adds)
-        return est.copy(), (f"initial state: no state a heat history of the inputs leaves fits the first "
-                            f"{INITIAL_FIT_S / 3600:g} h better than rest; started at rest")
-    spans = ", ".join(f"{newer:g}-{older:g} h" for newer, older in zip((0.0, *INITIAL_HISTORY_H[:-1]),
-                                                                       INITIAL_HISTORY_H, strict=True))
-    together = ", fitted over the axes together" if len(fitted) > 1 else ""
-    scored = ("that hour scores the fit, not the model" if float(rel[-1]) > INITIAL_FIT_S else
-              "the whole recording lies in that hour: its figures score the fit, not the model")
-    # a recording that starts at rest gets a state fitted all the same (heat only adds, but noise and small
-    # misses of the model's draw it): said, not called a warm start (the bundled day from 0 h: z 4.01 -> 4.57 um)
-    start = ("yet the recording seems to start at rest (by the check estimate makes of a start at rest): the state "
-             "may only follow noise and small misses of the model (--initial-state rest)" if at_rest else
-             "the recording does not start at rest")
-    return out, (f"initial state estimated from the first {INITIAL_FIT_S / 3600:g} h of measured displacement on "
-                 f"{', '.join(fitted)}: the state the model's inputs leave when held before the start ({spans} "
-                 f"back, each up to {INITIAL_FIT_LEVEL:g}x its largest in the experiments or here){together}: "
-                 f"{start}; {scored}")
+    return w, basis, responses, fitted
+
+
+def fitted_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "hold") -> Recording | None:
+    """The heat history before ``rec`` its first hour shows, as a recording that ends one window before it.
+
+    The state ``--initial-state fit`` fits (:func:`_fit_initial_state`: the model's factors held at levels over
+    the spans of :data:`INITIAL_HISTORY_H` before the start, from the reference levels, fitted to the first
+    :data:`INITIAL_FIT_S` of measured displacement), written out as what it stands for: the factors' values over
+    the :data:`INITIAL_HISTORY_H` hours before ``rec`` (the reference level where no heat was fitted), the
+    displacement unmeasured. Run before ``rec`` (:func:`gateway.recording.continued`), any model (another path,
+    a term the model lacks) starts ``rec`` in the state that history leaves it, not only this model's state.
+    None when no such history moves the model (it fits the first hour no better than rest) or nothing can be
+    fitted. Derived inputs hold no history of their own (they follow the factors').
+    """
+    prep = prepare(rec, factors=model.factors, axes=model.axes, initial="reference", reference=model.reference,
+                   gap_policy=gap_policy, inputs=model.inputs)
+    est = model.discretize(rec.period_s).simulate(prep.du)
+    fit = _history_fit(model, rec.period_s, prep.time_s, est, prep.y, prep.du, inputs=range(len(model.factors)))
+    if fit is None:
+        return None
+    w, basis, responses, _ = fit
+    if not any(float(np.max(np.abs(wk * r))) >= 1e-3 for wk, r in zip(w, responses, strict=True) if r.size):
+        return None
+    back = round(INITIAL_HISTORY_H[-1] * 3600.0 / rec.period_s)
+    du = np.zeros((len(model.factors), back))
+    for wk, (j, level, (newer, older)) in zip(w, basis, strict=True):
+        du[j, back - older: back - newer] += wk * level
+    t = rec.time_s[0] - rec.period_s * np.arange(back, 0, -1)
+    return Recording(source=f"{rec.source} (fitted history)", period_s=rec.period_s, time_s=t,
+                     present=np.ones(back, dtype=bool),
+                     factors={f: du[j] + prep.u0[j] for j, f in enumerate(model.factors)},
+                     displacement={a: np.full(back, np.nan) for a in rec.displacement})
 
 
 def extrapolation_notes(model: ThermalModel, du: np.ndarray, *, margin: float = 1.2) -> list[str]:

@@ -92,10 +92,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="a recorded column whose meaning you have checked (e.g. a temperature of a known part): a "
                         "hypothesis on it may be written into the model; other recorded signals are only named "
                         "(repeatable; room/ambient thermometers are always usable)")
-    p.add_argument("--keep-warm", action="store_true",
-                   help="diagnose the recordings that seem not to start at rest too (by default, while they are a "
-                        "minority and not the model's own experiments, they are left out, since a start the model "
-                        "does not know is taken for missing physics, and scored apart as --validate recordings)")
     p.add_argument("--no-reidentify", action="store_true",
                    help="judge hypotheses only as terms on the frozen model and never re-identify its paths "
                         "(the earlier behaviour; faster, wrong when the missing physics acted during identification)")
@@ -152,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
     update, close = progress_bar(None, "diagnose")
     try:
         d = diagnose(model, recs, factors=factor_infos(profile), options=options, gap_policy=args.gap_policy,
-                     keep_warm=args.keep_warm, progress=update)
+                     progress=update)
     finally:
         close()
     d.conclusions += hedges
@@ -165,10 +161,8 @@ def run(args: argparse.Namespace) -> int:
                       "found scales with the true period")
         d.conclusions.append(hedges[-1])
     # with --period-s every file's times count from 0: one ending where another starts is no sign it ran before
-    # the recordings set aside (they seem not to start at rest) are scored as validation ones, after the user's
-    validations = validate(d, [*vrecs, *(rec for rec, _ in d.set_aside)], earlier=recs,
-                           history=history if vrecs else None,
-                           gap_policy=args.gap_policy, chain=args.period_s is None) if vrecs or d.set_aside else []
+    validations = validate(d, vrecs, earlier=recs, history=history, gap_policy=args.gap_policy,
+                           chain=args.period_s is None) if vrecs else []
     if summary := validation_summary(d, validations):
         d.conclusions.append(summary)
     extra = {"model": str(model_path), "profile": str(profile.path)}

@@ -22,7 +22,7 @@ from gateway import __version__
 from gateway.diagnose.adequacy import MAX_ERROR_SHARE, Adequacy, assess
 from gateway.diagnose.compare import Comparison, compare
 from gateway.diagnose.confusable import Confusion, confusions
-from gateway.diagnose.data import Stack, build_stack, identified_on, recording_label, recording_labels
+from gateway.diagnose.data import Stack, build_stack, identified_on, recording_labels
 from gateway.diagnose.explain import Explanation, explain, held_corrections
 from gateway.diagnose.extend import extend_model
 from gateway.diagnose.hypotheses import FactorInfo, Hypothesis, catalogue, partial_columns
@@ -54,7 +54,7 @@ from gateway.model.model import ThermalModel
 from gateway.prepare import prepare
 from gateway.profile import Profile
 from gateway.recording import Recording, continued, runs_on_from, split_part
-from gateway.replay import AxisFigures, Estimate, estimate, starts_warm, works_at_start
+from gateway.replay import AxisFigures, Estimate, estimate, fitted_history, starts_warm, works_at_start
 
 
 @dataclass(kw_only=True)
@@ -95,9 +95,6 @@ class Diagnosis:
     conclusions: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     wall_s: float = 0.0
-    #: recordings given but not diagnosed, and why: they seem not to start at rest (:func:`set_aside`); a user
-    #: gets them scored apart, as validation recordings (``cncgw diagnose`` does so)
-    set_aside: list[tuple[Recording, str]] = field(default_factory=list)
 
     def verdict(self) -> list[str]:
         """The verdict: the identified model's fitness (:meth:`Adequacy.lines`), then the written model's."""
@@ -139,27 +136,22 @@ def factor_infos(profile: Profile) -> list[FactorInfo]:
 
 def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: Sequence[FactorInfo] = (),
              options: Options | None = None, gap_policy: str = "hold", families: Sequence[str] | None = None,
-             keep_warm: bool = False, progress: Callable[[str], None] | None = None) -> Diagnosis:
+             initial_state: str = "fit", progress: Callable[[str], None] | None = None) -> Diagnosis:
     """Compare ``model`` with ``recordings``, locate the differences, test hypotheses, extend the model.
 
-    Recordings that seem not to start at rest are set aside when they are a minority (:func:`set_aside`;
-    ``keep_warm`` diagnoses them all the same).
+    ``initial_state``: "fit" runs a recording that seems not to start at rest from the heat history its first
+    hour shows (:func:`start_histories`); "rest" starts every recording in equilibrium with its first window.
     """
     t0 = time.perf_counter()
     options = options or Options()
+    if initial_state not in ("fit", "rest"):
+        raise ValueError(f"initial_state must be 'fit' or 'rest'. Got {initial_state!r}")
     # many small least-squares problems: BLAS threads only contend for the cores (see identify)
     with threadpool_limits(limits=1, user_api="blas"):
         warm = {r: why for r, rec in enumerate(recordings) if (why := starts_warm(model, rec, gap_policy=gap_policy))}
-        aside = {} if keep_warm else set_aside(model, recordings, warm)
-        kept = [r for r in range(len(recordings)) if r not in aside]
-        stack = build_stack(model, [recordings[r] for r in kept], gap_policy=gap_policy)
-        if aside and int(make_blocks(stack.bounds, np.isfinite(stack.y).any(axis=0), options.blocks).max()) + 1 \
-                < MIN_HELD_BLOCKS:  # the others alone give too little to judge on: all are diagnosed, as they are
-            aside, kept = {}, list(range(len(recordings)))
-            stack = build_stack(model, recordings, gap_policy=gap_policy)
-        apart = [(recordings[r], why) for r, why in aside.items()]
-        warm = {k: warm[r] for k, r in enumerate(kept) if r in warm}
-        recordings = [recordings[r] for r in kept]
+        histories = start_histories(model, recordings, warm, gap_policy=gap_policy) if initial_state == "fit" else {}
+        stack = build_stack(model, [continued(histories[r], rec) if r in histories else rec
+                                    for r, rec in enumerate(recordings)], gap_policy=gap_policy)
         infos = list(factors) or [FactorInfo(name=f, unit=model.units.get(f, "")) for f in model.factors]
         by_name = {f.name: f for f in infos}
         speeds = [f for f in model.factors if f in by_name and by_name[f].is_speed]
@@ -181,11 +173,11 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
                 axis=a, residual=r, noise=noise, windows=located_windows(stack, r_clean, noise), steps=steps,
                 change_points=change_points(stack, r_clean), states=operating_states(stack, r_clean),
                 lines=spectral_lines(stack, r_clean), correlations=correlations(stack, r_clean, signals))
-        # a recording that starts warm (cut while the machine worked) and was kept (most do: a disturbance is
-        # likelier; or --keep-warm) is started in equilibrium with its first window like every other: its error is
-        # partly its start's, said, and the verdict taken without it too
+        # a recording that starts warm (cut while the machine worked) and runs from no fitted history (most do: a
+        # disturbance is likelier; or --initial-state rest) is started in equilibrium with its first window like
+        # every other: its error is partly its start's, said, and the verdict taken without it too
         adequacy = assess(stack, model, {a: f.noise.sigma_um for a, f in findings.items()}, steps_um,
-                          not_at_rest=warm)
+                          not_at_rest={r: why for r, why in warm.items() if r not in histories})
         measured = np.isfinite(stack.y).any(axis=0)
         block = make_blocks(stack.bounds, measured, options.blocks)
         held_blocks = int(block.max()) + 1 if (block >= 0).any() else 0
@@ -257,11 +249,9 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
     extended = replace(extended, info={**extended.info, "diagnosis": record})
     diag = Diagnosis(model=model, extended=extended, stack=stack, findings=findings, hypotheses=hyps, result=result,
                      results=results, options=options, adequacy=adequacy, comparison=comparison, reidentified=reid,
-                     block=block, notes=[*stack.notes, *_not_at_rest_notes(stack, warm)],
-                     explanation=explanation, confusions=confused, set_aside=apart)
+                     block=block, notes=[*stack.notes, *_not_at_rest_notes(stack, warm, histories)],
+                     explanation=explanation, confusions=confused)
     diag.conclusions = conclusions(diag, block)
-    if apart:
-        diag.conclusions.insert(0, _set_aside_line(stack, apart))
     if options.reidentify and missing:
         which = ("the model names no identification experiments" if missing == [NONE_NAMED] else
                  "its identification experiments are not among these recordings "
@@ -626,55 +616,62 @@ def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence
     return out
 
 
-def set_aside(model: ThermalModel, recordings: Sequence[Recording], warm: Mapping[int, str]) -> dict[int, str]:
-    """Of ``warm`` (recordings, by index, that seem not to start at rest: why), those to leave out of a diagnosis.
+def start_histories(model: ThermalModel, recordings: Sequence[Recording], warm: Mapping[int, str], *,
+                    gap_policy: str = "hold") -> dict[int, Recording]:
+    """Of ``warm`` (recordings, by index, that seem not to start at rest: why), the heat history each runs from.
 
-    A recording cut while the machine worked starts in a state none of its windows shows, and every fit starts
-    it in equilibrium with its first window: the transient that leaves, decaying through the hours after, is
-    taken for missing physics and pulls the paths a re-identification fits. Measured (bench/diagnose.py
-    --cut-days 10, plant variants 1-3, 51 cases: the production days from 10 h on, two or three of the four
-    working then): the model written was the identified one, unchanged, in 44 of 51 cases (3 of 51 on the
-    whole days) and the right effect named in 3 of 28; free decays of the state fitted beside every fit took
-    the missing physics' own signature in those days and changed 2 cases. So they are left out, and scored
-    apart as validation recordings (their state fitted to their first hour, as ``cncgw estimate
-    --initial-state fit`` does).
+    A recording cut while the machine worked starts in a state none of its windows shows. Started in equilibrium
+    with its first window (as if it had worked so for ever), it leaves a transient through the hours after that
+    every fit takes for missing physics and that pulls the paths a re-identification fits. Measured
+    (bench/diagnose.py --cut-days 10, plant variants 1-3: the four production days from 10 h on, two or three
+    of them working then; 51 cases): the model written was the identified one, unchanged, in 44 of 51 (3 of 51 on
+    the whole days); free decays of the state beside every fit took the missing physics' own signature in those
+    days (2 cases changed), and leaving them out left too little to judge on (45 of 51). Given the hours before
+    10 h as inputs without displacement (what the heat history is, an oracle): see the bench's notes.
 
-    Only a minority, never one the model was identified on (its paths were fitted from that start, and a
-    re-identification needs all its experiments), and only while the others still give enough held-out
-    blocks (:func:`diagnose` checks): when most recordings move early a disturbance acting in all of them (a
-    room drifting through every first hour) is likelier than as many warm starts, and it is the diagnosis's
-    to find.
+    So each runs from the history its first hour shows (:func:`gateway.replay.fitted_history`, the one
+    ``cncgw estimate --initial-state fit`` fits), as unmeasured windows before it: every path, refitted or not,
+    and every term a hypothesis adds starts in the state that history leaves, physics the model lacks included.
+
+    Only a minority, and never a recording the model was identified on (its paths were fitted from that start):
+    when most recordings move early, a disturbance acting in all of them (a room drifting through every first
+    hour) is likelier than as many warm starts, and it is the diagnosis's to find.
     """
     if not warm or 2 * len(warm) >= len(recordings):
         return {}
-    return {r: why for r, why in warm.items()
-            if not identified_on(model, recordings[r].name, recordings[r].fingerprint(model.factors))}
+    out = {}
+    for r in warm:
+        rec = recordings[r]
+        if identified_on(model, rec.name, rec.fingerprint(model.factors)):
+            continue
+        history = fitted_history(model, rec, gap_policy=gap_policy)
+        if history is not None:
+            out[r] = history
+    return out
 
 
-def _set_aside_line(stack: Stack, apart: Sequence[tuple[Recording, str]]) -> str:
-    """The conclusion that says which recordings were left out of the diagnosis and why (:func:`set_aside`)."""
-    which = "; ".join(f"{recording_label(rec.source)} ({why})" for rec, why in apart)
-    return (f"not diagnosed: {which} {'seems' if len(apart) == 1 else 'seem'} not to start at rest, and "
-            f"{len(stack.bounds)} other recording(s) do: a start the model does not know would be taken for missing "
-            f"physics in every fit, so {'it is' if len(apart) == 1 else 'they are'} scored apart with the written "
-            "model as validation recordings (the state at the start fitted to the first hour); diagnose whole days, "
-            "or cut where the machine had rested (--keep-warm diagnoses them all the same)")
-
-
-def _not_at_rest_notes(stack: Stack, warm: dict[int, str]) -> list[str]:
+def _not_at_rest_notes(stack: Stack, warm: dict[int, str], histories: Mapping[int, Recording]) -> list[str]:
     """Notes on the recordings that seem not to start at rest (by index: why): one each, or one for many.
 
     A room that drifts in every recording makes each of them move early: thirteen notes alike said less than one.
+    Those that run from a fitted history (``histories``) are said so, one each.
     """
+    out = [f"{stack.labels[r]}: it seems not to start at rest ({warm[r]}); it runs from the heat history its first "
+           f"hour shows ({len(h) * stack.dt_s / 3600:.3g} h of the factors before it, fitted as `cncgw estimate "
+           "--initial-state fit` fits the state; no displacement there), so every fit starts it in the state that "
+           "history leaves (--initial-state rest: in equilibrium with its first window)" for r, h in histories.items()]
+    warm = {r: why for r, why in warm.items() if r not in histories}
+    if not warm:
+        return out
     tail = ("diagnose starts every recording in equilibrium with its first window, so what {} early on may be "
             "{} start's (a machine not yet at rest) or a disturbance no input carries")
     if len(warm) <= 2:
-        return [f"{stack.labels[r]}: it seems not to start at rest ({why}); {tail.format('it misses', 'its')}"
-                for r, why in warm.items()]
+        return out + [f"{stack.labels[r]}: it seems not to start at rest ({why}); {tail.format('it misses', 'its')}"
+                      for r, why in warm.items()]
     first, why = next(iter(warm.items()))
     names = [stack.labels[r] for r in warm]
     listed = ", ".join(names[:6]) + (", ..." if len(names) > 6 else "")
-    return [f"{len(warm)} recordings seem not to start at rest ({listed}; {stack.labels[first]}: {why}); "
+    return [*out, f"{len(warm)} recordings seem not to start at rest ({listed}; {stack.labels[first]}: {why}); "
             f"{tail.format('they miss', 'their')}"
             + ("; all of them: more likely a disturbance than starts" if len(warm) == len(stack.labels) else "")]
 
