@@ -232,42 +232,6 @@ def _fit_initial_state(model: ThermalModel, period_s: float, time_s: np.ndarray,
     ``at_rest``: the recording seems to start at rest (:func:`starts_warm` finds nothing): the note says the
     fitted state may only follow noise and small misses, not that it does not start at rest.
     """
-    fit = _history_fit(model, period_s, time_s, est, measured, du)
-    if fit is None:
-        return est.copy(), (f"initial state: no input or too few measured windows in the first "
-                            f"{INITIAL_FIT_S / 3600:g} h to estimate it from; started at rest")
-    w, _, responses, fitted = fit
-    out = est + sum((wk * r for wk, r in zip(w, responses, strict=True)), np.zeros_like(est))
-    moved = float(np.max(np.abs(out - est))) if out.size else 0.0
-    if moved < 1e-3:  # no heat history fits the first hour better than none (a cold start: heat only adds)
-        return est.copy(), (f"initial state: no state a heat history of the inputs leaves fits the first "
-                            f"{INITIAL_FIT_S / 3600:g} h better than rest; started at rest")
-    spans = ", ".join(f"{newer:g}-{older:g} h" for newer, older in zip((0.0, *INITIAL_HISTORY_H[:-1]),
-                                                                       INITIAL_HISTORY_H, strict=True))
-    together = ", fitted over the axes together" if len(fitted) > 1 else ""
-    rel = time_s[-1] - time_s[0] + (time_s[1] - time_s[0] if len(time_s) > 1 else 0.0)
-    scored = ("that hour scores the fit, not the model" if float(rel) > INITIAL_FIT_S else
-              "the whole recording lies in that hour: its figures score the fit, not the model")
-    # a recording that starts at rest gets a state fitted all the same (heat only adds, but noise and small
-    # misses of the model's draw it): said, not called a warm start (the bundled day from 0 h: z 4.01 -> 4.57 um)
-    start = ("yet the recording seems to start at rest (by the check estimate makes of a start at rest): the state "
-             "may only follow noise and small misses of the model (--initial-state rest)" if at_rest else
-             "the recording does not start at rest")
-    return out, (f"initial state estimated from the first {INITIAL_FIT_S / 3600:g} h of measured displacement on "
-                 f"{', '.join(fitted)}: the state the model's inputs leave when held before the start ({spans} "
-                 f"back, each up to {INITIAL_FIT_LEVEL:g}x its largest in the experiments or here){together}: "
-                 f"{start}; {scored}")
-
-
-def _history_fit(model: ThermalModel, period_s: float, time_s: np.ndarray, est: np.ndarray, measured: np.ndarray,
-                 du: np.ndarray, *, inputs: Sequence[int] | None = None
-                 ) -> tuple[np.ndarray, list[tuple[int, float, tuple[int, int]]], list[np.ndarray], list[str]] | None:
-    """The heat history :func:`_fit_initial_state` fits: (weights, what each is, their responses, axes fitted).
-
-    Each basis element is (input index, its level held, the history's span (newer, older) in windows back from
-    the start): the input held at ``weight`` x that level over that span. ``inputs``: the inputs a history may
-    hold (default: every input of the model). None: no input or too few measured windows to fit.
-    """
     import scipy.optimize
 
     rel = time_s - time_s[0] + (time_s[1] - time_s[0] if len(time_s) > 1 else 0.0)
@@ -278,10 +242,7 @@ def _history_fit(model: ThermalModel, period_s: float, time_s: np.ndarray, est: 
     back = round(INITIAL_HISTORY_H[-1] * 3600.0 / period_s)
     n = est.shape[1]
     responses: list[np.ndarray] = []
-    basis: list[tuple[int, float, tuple[int, int]]] = []
     for j, name in enumerate(names):
-        if inputs is not None and j not in inputs:
-            continue
         # the levels it had in the experiments or has in this recording, whichever reach further (before its start
         # the machine worked as it does in it)
         lo, hi = (float(v) for v in covered.get(name, (0.0, 0.0)))
@@ -289,15 +250,15 @@ def _history_fit(model: ThermalModel, period_s: float, time_s: np.ndarray, est: 
             lo, hi = min(lo, float(du[j].min())), max(hi, float(du[j].max()))
         for level in (v for v in (hi, lo) if v != 0.0):
             for newer, older in zip((0.0, *INITIAL_HISTORY_H[:-1]), INITIAL_HISTORY_H, strict=True):
-                span = (round(newer * 3600.0 / period_s), round(older * 3600.0 / period_s))
                 u = np.zeros((len(names), back + n))
-                u[j, back - span[1]: back - span[0]] = INITIAL_FIT_LEVEL * level
+                u[j, back - round(older * 3600.0 / period_s): back - round(newer * 3600.0 / period_s)] = (
+                    INITIAL_FIT_LEVEL * level)
                 responses.append(dm.simulate(u)[:, back:])
-                basis.append((j, INITIAL_FIT_LEVEL * level, span))
     ok = [first & np.isfinite(measured[i] - est[i]) for i in range(len(model.axes))]
     fitted = [a for i, a in enumerate(model.axes) if ok[i].sum() >= 5]
     if not responses or not fitted:
-        return None
+        return est.copy(), (f"initial state: no input or too few measured windows in the first "
+                            f"{INITIAL_FIT_S / 3600:g} h to estimate it from; started at rest")
     rows, target = [], []
     for i, a in enumerate(model.axes):
         if a not in fitted:
@@ -313,39 +274,95 @@ def _history_fit(model: ThermalModel, period_s: float, time_s: np.ndarray, est: 
     bounds = (np.r_[np.zeros(k), np.full(len(model.axes), -np.inf)] * scale,
               np.r_[np.ones(k), np.full(len(model.axes), np.inf)] * scale)
     w = scipy.optimize.lsq_linear(A / scale, b, bounds=bounds).x[:k] / scale[:k]
-    return w, basis, responses, fitted
+    out = est + sum((wk * r for wk, r in zip(w, responses, strict=True)), np.zeros_like(est))
+    moved = float(np.max(np.abs(out - est))) if out.size else 0.0
+    if moved < 1e-3:  # no heat history fits the first hour better than none (a cold start: heat only adds)
+        return est.copy(), (f"initial state: no state a heat history of the inputs leaves fits the first "
+                            f"{INITIAL_FIT_S / 3600:g} h better than rest; started at rest")
+    spans = ", ".join(f"{newer:g}-{older:g} h" for newer, older in zip((0.0, *INITIAL_HISTORY_H[:-1]),
+                                                                       INITIAL_HISTORY_H, strict=True))
+    together = ", fitted over the axes together" if len(fitted) > 1 else ""
+    scored = ("that hour scores the fit, not the model" if float(rel[-1]) > INITIAL_FIT_S else
+              "the whole recording lies in that hour: its figures score the fit, not the model")
+    # a recording that starts at rest gets a state fitted all the same (heat only adds, but noise and small
+    # misses of the model's draw it): said, not called a warm start (the bundled day from 0 h: z 4.01 -> 4.57 um)
+    start = ("yet the recording seems to start at rest (by the check estimate makes of a start at rest): the state "
+             "may only follow noise and small misses of the model (--initial-state rest)" if at_rest else
+             "the recording does not start at rest")
+    return out, (f"initial state estimated from the first {INITIAL_FIT_S / 3600:g} h of measured displacement on "
+                 f"{', '.join(fitted)}: the state the model's inputs leave when held before the start ({spans} "
+                 f"back, each up to {INITIAL_FIT_LEVEL:g}x its largest in the experiments or here){together}: "
+                 f"{start}; {scored}")
 
 
-def fitted_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "hold") -> Recording | None:
-    """The heat history before ``rec`` its first hour shows, as a recording that ends one window before it.
+#: hours of work a history before a recording that starts warm may hold (:func:`working_history`)
+WORK_HISTORY_H = (0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0)
 
-    The state ``--initial-state fit`` fits (:func:`_fit_initial_state`: the model's factors held at levels over
-    the spans of :data:`INITIAL_HISTORY_H` before the start, from the reference levels, fitted to the first
-    :data:`INITIAL_FIT_S` of measured displacement), written out as what it stands for: the factors' values over
-    the :data:`INITIAL_HISTORY_H` hours before ``rec`` (the reference level where no heat was fitted), the
-    displacement unmeasured. Run before ``rec`` (:func:`gateway.recording.continued`), any model (another path,
-    a term the model lacks) starts ``rec`` in the state that history leaves it, not only this model's state.
-    None when no such history moves the model (it fits the first hour no better than rest) or nothing can be
-    fitted. Derived inputs hold no history of their own (they follow the factors').
+
+def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "hold") -> tuple[Recording, str] | None:
+    """The hours of work before ``rec`` its first hour shows, as a recording that ends one window before it.
+
+    The machine is taken to have worked before the start as it works in the recording: its factors held, from
+    rest, for H hours at the levels of the recording's first window or at their mean over the windows it works in
+    (any factor over a hundredth of its largest deviation from its rest level); H (from :data:`WORK_HISTORY_H`) and
+    the levels are those whose run through the model, then through ``rec``, meets the first :data:`INITIAL_FIT_S`
+    of measured displacement best (a free zero per axis). Returned with what was chosen, in words; None when
+    none beats a start at rest there (or nothing is measured in that hour).
+
+    Not the state ``--initial-state fit`` fits (:func:`_fit_initial_state`: any mix of the inputs over four spans,
+    which meets the hour best for this model, and fitted there a bundled day cut at 12 h held the spindle at 4500
+    rpm for the 16 h before): a history is run through other models too (paths refitted, terms the model lacks),
+    and only one the machine could have worked makes their states right. The displacement is unmeasured there.
     """
+    names = list(model.factors)
     prep = prepare(rec, factors=model.factors, axes=model.axes, initial="reference", reference=model.reference,
                    gap_policy=gap_policy, inputs=model.inputs)
-    est = model.discretize(rec.period_s).simulate(prep.du)
-    fit = _history_fit(model, rec.period_s, prep.time_s, est, prep.y, prep.du, inputs=range(len(model.factors)))
-    if fit is None:
+    du = prep.du[: len(names)]
+    rel = prep.time_s - prep.time_s[0] + rec.period_s
+    first = (rel <= INITIAL_FIT_S)[None, :] & np.isfinite(prep.y)
+    if first.sum() < 5 or not du.shape[1]:
         return None
-    w, basis, responses, _ = fit
-    if not any(float(np.max(np.abs(wk * r))) >= 1e-3 for wk, r in zip(w, responses, strict=True) if r.size):
-        return None
-    back = round(INITIAL_HISTORY_H[-1] * 3600.0 / rec.period_s)
-    du = np.zeros((len(model.factors), back))
-    for wk, (j, level, (newer, older)) in zip(w, basis, strict=True):
-        du[j, back - older: back - newer] += wk * level
-    t = rec.time_s[0] - rec.period_s * np.arange(back, 0, -1)
-    return Recording(source=f"{rec.source} (fitted history)", period_s=rec.period_s, time_s=t,
-                     present=np.ones(back, dtype=bool),
-                     factors={f: du[j] + prep.u0[j] for j, f in enumerate(model.factors)},
-                     displacement={a: np.full(back, np.nan) for a in rec.displacement})
+    size = np.nanmax(np.abs(du), axis=1, initial=0.0)
+    working = (np.abs(du) > 0.01 * size[:, None]).any(axis=0)
+    levels = {"its first window's": du[:, 0]}
+    if working.any():
+        levels["its mean working"] = du[:, working].mean(axis=1)
+    dm = model.discretize(rec.period_s)
+
+    def miss(est: np.ndarray) -> float:  # squared error over the first hour, a free zero per axis
+        total = 0.0
+        for i in range(len(model.axes)):
+            e = (prep.y[i] - est[i])[first[i]]
+            total += float(np.sum((e - e.mean()) ** 2)) if e.size else 0.0
+        return total
+
+    best = (miss(dm.simulate(prep.du)), None, "")
+    for said, level in levels.items():
+        if not np.any(level):
+            continue
+        for hours in WORK_HISTORY_H:
+            k = round(hours * 3600.0 / rec.period_s)
+            hist = _held(rec, names, prep.u0[: len(names)], prep.u0[: len(names)] + level, k)
+            run = prepare(continued(hist, rec), factors=model.factors, axes=model.axes, initial="reference",
+                          reference=model.reference, gap_policy=gap_policy, inputs=model.inputs)
+            score = miss(dm.simulate(run.du)[:, k + 1:])
+            if score < best[0]:
+                best = (score, hist, f"{hours:g} h at {said} levels")
+    return (best[1], best[2]) if best[1] is not None else None
+
+
+def _held(rec: Recording, names: Sequence[str], rest: np.ndarray, values: np.ndarray, windows: int) -> Recording:
+    """``names`` at ``rest``, then held at ``values`` over ``windows`` windows that end one window before ``rec``.
+
+    The window at rest first: whatever starts a run in equilibrium with its first window (``initial="first"``, as
+    diagnosis stacks recordings) starts this one at rest, as the reference levels do. No displacement.
+    """
+    t = rec.time_s[0] - rec.period_s * np.arange(windows + 1, 0, -1)
+    return Recording(source=f"{rec.source} (work before it)", period_s=rec.period_s, time_s=t,
+                     present=np.ones(windows + 1, dtype=bool),
+                     factors={f: np.r_[r, np.full(windows, float(v))]
+                              for f, r, v in zip(names, rest, values, strict=True)},
+                     displacement={a: np.full(windows + 1, np.nan) for a in rec.displacement})
 
 
 def extrapolation_notes(model: ThermalModel, du: np.ndarray, *, margin: float = 1.2) -> list[str]:

@@ -92,6 +92,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="a recorded column whose meaning you have checked (e.g. a temperature of a known part): a "
                         "hypothesis on it may be written into the model; other recorded signals are only named "
                         "(repeatable; room/ambient thermometers are always usable)")
+    p.add_argument("--initial-state", choices=("fit", "rest"), default="fit",
+                   help="fit (default): a recording that seems not to start at rest (cut while the machine worked; "
+                        "while such are a minority, and not one of the model's experiments) runs from the hours of "
+                        "work its first hour shows, its own levels held from rest, so no fit takes its unknown start "
+                        "for missing physics; rest: every recording starts in equilibrium with its first window")
     p.add_argument("--no-reidentify", action="store_true",
                    help="judge hypotheses only as terms on the frozen model and never re-identify its paths "
                         "(the earlier behaviour; faster, wrong when the missing physics acted during identification)")
@@ -148,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
     update, close = progress_bar(None, "diagnose")
     try:
         d = diagnose(model, recs, factors=factor_infos(profile), options=options, gap_policy=args.gap_policy,
-                     progress=update)
+                     initial_state=args.initial_state, progress=update)
     finally:
         close()
     d.conclusions += hedges

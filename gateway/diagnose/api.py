@@ -54,7 +54,7 @@ from gateway.model.model import ThermalModel
 from gateway.prepare import prepare
 from gateway.profile import Profile
 from gateway.recording import Recording, continued, runs_on_from, split_part
-from gateway.replay import AxisFigures, Estimate, estimate, fitted_history, starts_warm, works_at_start
+from gateway.replay import AxisFigures, Estimate, estimate, starts_warm, working_history, works_at_start
 
 
 @dataclass(kw_only=True)
@@ -150,7 +150,7 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
     with threadpool_limits(limits=1, user_api="blas"):
         warm = {r: why for r, rec in enumerate(recordings) if (why := starts_warm(model, rec, gap_policy=gap_policy))}
         histories = start_histories(model, recordings, warm, gap_policy=gap_policy) if initial_state == "fit" else {}
-        stack = build_stack(model, [continued(histories[r], rec) if r in histories else rec
+        stack = build_stack(model, [continued(histories[r][0], rec) if r in histories else rec
                                     for r, rec in enumerate(recordings)], gap_policy=gap_policy)
         infos = list(factors) or [FactorInfo(name=f, unit=model.units.get(f, "")) for f in model.factors]
         by_name = {f.name: f for f in infos}
@@ -617,8 +617,8 @@ def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence
 
 
 def start_histories(model: ThermalModel, recordings: Sequence[Recording], warm: Mapping[int, str], *,
-                    gap_policy: str = "hold") -> dict[int, Recording]:
-    """Of ``warm`` (recordings, by index, that seem not to start at rest: why), the heat history each runs from.
+                    gap_policy: str = "hold") -> dict[int, tuple[Recording, str]]:
+    """Of ``warm`` (recordings, by index, that seem not to start at rest: why), the work each runs from, in words.
 
     A recording cut while the machine worked starts in a state none of its windows shows. Started in equilibrium
     with its first window (as if it had worked so for ever), it leaves a transient through the hours after that
@@ -626,12 +626,12 @@ def start_histories(model: ThermalModel, recordings: Sequence[Recording], warm: 
     (bench/diagnose.py --cut-days 10, plant variants 1-3: the four production days from 10 h on, two or three
     of them working then; 51 cases): the model written was the identified one, unchanged, in 44 of 51 (3 of 51 on
     the whole days); free decays of the state beside every fit took the missing physics' own signature in those
-    days (2 cases changed), and leaving them out left too little to judge on (45 of 51). Given the hours before
-    10 h as inputs without displacement (what the heat history is, an oracle): see the bench's notes.
+    days (2 cases changed), and leaving them out left too little to judge on (45 of 51). Given the true hours
+    before 10 h as inputs without displacement (an oracle), 3 of 51: what a known start is worth.
 
-    So each runs from the history its first hour shows (:func:`gateway.replay.fitted_history`, the one
-    ``cncgw estimate --initial-state fit`` fits), as unmeasured windows before it: every path, refitted or not,
-    and every term a hypothesis adds starts in the state that history leaves, physics the model lacks included.
+    So each runs from the hours of work its first hour shows (:func:`gateway.replay.working_history`: its own
+    levels held for some hours from rest), as unmeasured windows before it: every path, refitted or not, and
+    every term a hypothesis adds starts in the state that work leaves, physics the model lacks included.
 
     Only a minority, and never a recording the model was identified on (its paths were fitted from that start):
     when most recordings move early, a disturbance acting in all of them (a room drifting through every first
@@ -644,22 +644,23 @@ def start_histories(model: ThermalModel, recordings: Sequence[Recording], warm: 
         rec = recordings[r]
         if identified_on(model, rec.name, rec.fingerprint(model.factors)):
             continue
-        history = fitted_history(model, rec, gap_policy=gap_policy)
+        history = working_history(model, rec, gap_policy=gap_policy)
         if history is not None:
             out[r] = history
     return out
 
 
-def _not_at_rest_notes(stack: Stack, warm: dict[int, str], histories: Mapping[int, Recording]) -> list[str]:
+def _not_at_rest_notes(stack: Stack, warm: dict[int, str], histories: Mapping[int, tuple[Recording, str]]
+                       ) -> list[str]:
     """Notes on the recordings that seem not to start at rest (by index: why): one each, or one for many.
 
     A room that drifts in every recording makes each of them move early: thirteen notes alike said less than one.
     Those that run from a fitted history (``histories``) are said so, one each.
     """
-    out = [f"{stack.labels[r]}: it seems not to start at rest ({warm[r]}); it runs from the heat history its first "
-           f"hour shows ({len(h) * stack.dt_s / 3600:.3g} h of the factors before it, fitted as `cncgw estimate "
-           "--initial-state fit` fits the state; no displacement there), so every fit starts it in the state that "
-           "history leaves (--initial-state rest: in equilibrium with its first window)" for r, h in histories.items()]
+    out = [f"{stack.labels[r]}: it seems not to start at rest ({warm[r]}); it runs from the work its first hour "
+           f"shows ({said} before it, from rest, as windows with no displacement), so every fit starts it in the "
+           "state that work leaves (--initial-state rest: in equilibrium with its first window)"
+           for r, (_, said) in histories.items()]
     warm = {r: why for r, why in warm.items() if r not in histories}
     if not warm:
         return out
