@@ -297,6 +297,8 @@ def _fit_initial_state(model: ThermalModel, period_s: float, time_s: np.ndarray,
 
 #: hours of work a history before a recording that starts warm may hold (:func:`working_history`)
 WORK_HISTORY_H = (0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0)
+#: the stretch of measured displacement that history is chosen on
+WORK_FIT_S = float(__import__("os").environ.get("CNCGW_WORK_FIT_S", 3 * 3600.0))
 
 
 def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "hold") -> tuple[Recording, str] | None:
@@ -319,7 +321,7 @@ def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "h
                    gap_policy=gap_policy, inputs=model.inputs)
     du = prep.du[: len(names)]
     rel = prep.time_s - prep.time_s[0] + rec.period_s
-    first = (rel <= INITIAL_FIT_S)[None, :] & np.isfinite(prep.y)
+    first = (rel <= WORK_FIT_S)[None, :] & np.isfinite(prep.y)
     if first.sum() < 5 or not du.shape[1]:
         return None
     size = np.nanmax(np.abs(du), axis=1, initial=0.0)

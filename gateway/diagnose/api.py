@@ -152,6 +152,9 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
         histories = start_histories(model, recordings, warm, gap_policy=gap_policy) if initial_state == "fit" else {}
         stack = build_stack(model, [continued(histories[r][0], rec) if r in histories else rec
                                     for r, rec in enumerate(recordings)], gap_policy=gap_policy)
+        if histories:
+            stack = replace(stack, lead=tuple(len(histories[r][0]) if r in histories else 0
+                                              for r in range(len(recordings))))
         infos = list(factors) or [FactorInfo(name=f, unit=model.units.get(f, "")) for f in model.factors]
         by_name = {f.name: f for f in infos}
         speeds = [f for f in model.factors if f in by_name and by_name[f].is_speed]
@@ -186,9 +189,9 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
             # and "nothing significant is missing" over a single window (a new user's one-row file)
             raise RecordingError(
                 f"{', '.join(stack.names)}: {int(measured.sum())} window(s) with measured displacement, "
-                f"{stack.n * stack.dt_s / 3600:.2g} h in all, give {held_blocks} held-out block(s); a diagnosis "
-                f"judges on at least {MIN_HELD_BLOCKS} (a recording gives some from 6 measured windows on, blocks "
-                "of hours from a few hours on): record longer or add recordings")
+                f"{stack.own_windows * stack.dt_s / 3600:.2g} h in all, give {held_blocks} held-out block(s); a "
+                f"diagnosis judges on at least {MIN_HELD_BLOCKS} (a recording gives some from 6 measured windows "
+                "on, blocks of hours from a few hours on): record longer or add recordings")
         hyps = catalogue(stack, model, infos, families=families)
         confused = confusions(stack, hyps)
         # two ways to judge a hypothesis: as a term on the frozen identified model (its paths trusted), and with
@@ -402,8 +405,8 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
     accepted = {t.hypothesis.key for t in physics} | {t.hypothesis.key for t in (ex.named if ex else [])}
     out += [c.line(accepted=c.key in accepted) for c in d.confusions]
     out += partial_columns(st)
-    span_h = max(b - a for a, b in st.bounds) * st.dt_s / 3600.0
-    total_h = st.n * st.dt_s / 3600.0
+    span_h = max(b - a - (st.lead[r] if st.lead else 0) for r, (a, b) in enumerate(st.bounds)) * st.dt_s / 3600.0
+    total_h = st.own_windows * st.dt_s / 3600.0
     k = int(block.max()) + 1 if (block >= 0).any() else 0
     # the time the held-out blocks span: from each recording's burn-in to its last scored window (probe points
     # stand for the hours between them, not a window each)

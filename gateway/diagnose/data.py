@@ -82,6 +82,9 @@ class Stack:
     y_sd: np.ndarray | None = None
     #: per recording: measured only at probe instants (:attr:`gateway.prepare.Prepared.sparse`)
     sampled: tuple[bool, ...] = ()
+    #: per recording, the windows of work run before its own first window (a start fitted as hours of work, see
+    #: :func:`gateway.diagnose.api.start_histories`): no displacement there; times are told from its own start
+    lead: tuple[int, ...] = ()
     _cache: dict[object, object] = field(default_factory=dict, repr=False)
 
     @property
@@ -105,6 +108,15 @@ class Stack:
         """
         return [identified_on(model, name, fp)
                 for name, fp in zip(self.names, self.fingerprints or [""] * len(self.names), strict=True)]
+
+    def start_s(self, r: int) -> float:
+        """The time of recording ``r``'s own first window (after the work run before it, if any)."""
+        return float(self.time_s[self.bounds[r][0] + (self.lead[r] if self.lead else 0)])
+
+    @property
+    def own_windows(self) -> int:
+        """Windows of the recordings themselves: the stack without the work run before some of them."""
+        return self.n - sum(self.lead)
 
     def rec_index(self) -> np.ndarray:
         out = np.empty(self.n, dtype=int)

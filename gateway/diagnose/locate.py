@@ -131,7 +131,7 @@ def located_windows(stack: Stack, residual: np.ndarray, noise: Noise, *, min_len
             vals = seg[s:e]
             peak = float(vals[np.nanargmax(np.abs(vals))]) if np.isfinite(vals).any() else 0.0
             active = tuple(f for f, m in act.items() if m[sl].mean() > 0.5)
-            t0 = stack.time_s[a]
+            t0 = stack.start_s(r_i)
             out.append(Window(recording=stack.labels[r_i], start_h=(stack.time_s[a + s] - t0) / 3600.0,
                               end_h=(stack.time_s[a + e - 1] - t0) / 3600.0, start=a + s, stop=a + e,
                               peak_um=peak, running_share=float(any_active[sl].mean()), active=active))
@@ -192,7 +192,7 @@ def find_steps(stack: Stack, axis: int, residual: np.ndarray, noise: Noise, *, w
     """
     out = []
     least = max(size_sigmas * noise.sigma_um, 3 * noise.quantum_um)
-    for a, b in stack.bounds:
+    for r_i, (a, b) in enumerate(stack.bounds):
         seg = residual[a:b]
         found: list[Step] = []
         k = width
@@ -208,8 +208,8 @@ def find_steps(stack: Stack, axis: int, residual: np.ndarray, noise: Noise, *, w
                 continue
             level = float(np.nanmedian(after) - np.nanmedian(before))
             if abs(level) >= least and np.sign(level) == np.sign(d) and abs(d) >= sharpness * abs(level):
-                found.append(Step(axis=stack.axes[axis], index=a + k, recording=stack.labels[stack.rec_index()[a]],
-                                  time_h=(stack.time_s[a + k] - stack.time_s[a]) / 3600.0, size_um=level))
+                found.append(Step(axis=stack.axes[axis], index=a + k, recording=stack.labels[r_i],
+                                  time_h=(stack.time_s[a + k] - stack.start_s(r_i)) / 3600.0, size_um=level))
                 k += width
             else:
                 k += 1
@@ -236,7 +236,7 @@ def change_points(stack: Stack, residual: np.ndarray, *, min_segment: int = 60, 
     out = []
     for r_i, (a, b) in enumerate(stack.bounds):
         seg = residual[a:b]
-        t = (stack.time_s[a:b] - stack.time_s[a]) / 3600.0
+        t = (stack.time_s[a:b] - stack.start_s(r_i)) / 3600.0
         lin = _LinearPieces(t, seg)
         cuts = [0, len(seg)]
         sse_total = lin.sse(0, len(seg))
