@@ -297,8 +297,10 @@ def _fit_initial_state(model: ThermalModel, period_s: float, time_s: np.ndarray,
 
 #: hours of work a history before a recording that starts warm may hold (:func:`working_history`)
 WORK_HISTORY_H = (0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0)
-#: the stretch of measured displacement that history is chosen on
-WORK_FIT_S = float(__import__("os").environ.get("CNCGW_WORK_FIT_S", 3 * 3600.0))
+#: the stretch of measured displacement that history is chosen on: longer than estimate's hour, since hours of
+#: work differ in slow modes (bench/diagnose.py --cut-days 10, variants 1-3: on the first hour 19 of 51 fresh days
+#: 30 % better and 2 worse; on the first 3 h 18 and none)
+WORK_FIT_S = 3 * 3600.0
 
 
 def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "hold") -> tuple[Recording, str] | None:
@@ -307,9 +309,9 @@ def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "h
     The machine is taken to have worked before the start as it works in the recording: its factors held, from
     rest, for H hours at the levels of the recording's first window or at their mean over the windows it works in
     (any factor over a hundredth of its largest deviation from its rest level); H (from :data:`WORK_HISTORY_H`) and
-    the levels are those whose run through the model, then through ``rec``, meets the first :data:`INITIAL_FIT_S`
+    the levels are those whose run through the model, then through ``rec``, meets the first :data:`WORK_FIT_S`
     of measured displacement best (a free zero per axis). Returned with what was chosen, in words; None when
-    none beats a start at rest there (or nothing is measured in that hour).
+    none beats a start at rest there (or fewer than 5 windows are measured there).
 
     Not the state ``--initial-state fit`` fits (:func:`_fit_initial_state`: any mix of the inputs over four spans,
     which meets the hour best for this model, and fitted there a bundled day cut at 12 h held the spindle at 4500
