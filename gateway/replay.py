@@ -301,6 +301,8 @@ WORK_HISTORY_H = (0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0)
 #: work differ in slow modes (bench/diagnose.py --cut-days 10, variants 1-3: on the first hour 19 of 51 fresh days
 #: 30 % better and 2 worse; on the first 3 h 18 and none)
 WORK_FIT_S = 3 * 3600.0
+#: ... and it must leave at most this share of the squared error a start at rest leaves there
+WORK_MIN_SHARE = 0.75
 
 
 def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "hold") -> tuple[Recording, str] | None:
@@ -311,7 +313,8 @@ def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "h
     (any factor over a hundredth of its largest deviation from its rest level); H (from :data:`WORK_HISTORY_H`) and
     the levels are those whose run through the model, then through ``rec``, meets the first :data:`WORK_FIT_S`
     of measured displacement best (a free zero per axis). Returned with what was chosen, in words; None when
-    none beats a start at rest there (or fewer than 5 windows are measured there).
+    none leaves under :data:`WORK_MIN_SHARE` of a start at rest's squared error there (or fewer than 5 windows
+    are measured there).
 
     Not the state ``--initial-state fit`` fits (:func:`_fit_initial_state`: any mix of the inputs over four spans,
     which meets the hour best for this model, and fitted there a bundled day cut at 12 h held the spindle at 4500
@@ -340,7 +343,8 @@ def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "h
             total += float(np.sum((e - e.mean()) ** 2)) if e.size else 0.0
         return total
 
-    best = (miss(dm.simulate(prep.du)), None, "")
+    at_rest = miss(dm.simulate(prep.du))
+    best = (at_rest, None, "")
     for said, level in levels.items():
         if not np.any(level):
             continue
@@ -352,7 +356,8 @@ def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "h
             score = miss(dm.simulate(run.du)[:, k + 1:])
             if score < best[0]:
                 best = (score, hist, f"{hours:g} h at {said} levels")
-    return (best[1], best[2]) if best[1] is not None else None
+    # noise and small misses of the model draw some history or other: one that matters removes a share of the miss
+    return (best[1], best[2]) if best[1] is not None and best[0] < WORK_MIN_SHARE * at_rest else None
 
 
 def _held(rec: Recording, names: Sequence[str], rest: np.ndarray, values: np.ndarray, windows: int) -> Recording:

@@ -369,6 +369,12 @@ def test_steps_are_found_where_heat_cannot_move_that_fast():
     steps = find_steps(stack, 0, r, noise_level(stack, 0, r))
     assert [s.index for s in steps] == [1200]
     assert steps[0].size_um == pytest.approx(2.0, abs=0.2)
+    assert steps[0].time_h == pytest.approx(1200 * stack.dt_s / 3600.0)
+    # with hours of work run before a recording (its start fitted so), its hours still count from its own start
+    led = replace(stack, lead=(300,))
+    (step,) = find_steps(led, 0, r, noise_level(led, 0, r))
+    assert step.time_h == pytest.approx((1200 - 300) * stack.dt_s / 3600.0)
+    assert led.own_windows == n - 300
 
 
 def test_a_daily_cycle_shows_as_a_spectral_line_and_as_the_daily_hypothesis():

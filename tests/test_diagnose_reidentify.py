@@ -25,7 +25,7 @@ from gateway.diagnose.data import build_stack
 from gateway.identify import identify
 from gateway.model import FirstOrder, PathTF, ThermalModel, load_model, save_model
 from gateway.recording import Recording, write_recording
-from gateway.replay import estimate
+from gateway.replay import estimate, working_history
 
 pytestmark = pytest.mark.numeric
 
@@ -189,6 +189,65 @@ def test_a_day_cut_while_the_machine_is_warm_is_said_so_beside_the_verdict_it_sp
                            {0: "cut", 1: "cut"}).keys() == {1}
     # ... nor when most recordings seem not to start at rest (a disturbance in all of them is likelier)
     assert not start_histories(base, [days[2].slice(950, 1440), days[0]], {0: "cut"})
+
+
+def test_a_day_cut_mid_work_runs_from_hours_of_work_like_those_before_it():
+    # idle until 7 h, then jobs at 1500 and 2500 rpm; the file starts at 9 h: two hours of work before it, the
+    # machine far from the equilibrium of working so for ever (its slowest mode 2.5 h)
+    speed = np.zeros(1440)
+    speed[420:900] = 1500.0
+    speed[600:660] = 2500.0
+    day = _record("day", speed, start_s=2 * DAY_S, seed=5, room=False)
+    cut = day.slice(540, len(day))
+    hist, said = working_history(PLANT, cut)
+    hours = float(said.split(" h at ")[0])
+    assert 1.0 <= hours <= 4.0, said  # hours of work, not a machine that worked so for ever
+    assert len(hist) == round(hours * 60) + 1
+    assert np.isnan(hist.displacement["z"]).all()
+    assert hist.factors["speed"][0] == 0.0  # from rest
+    assert hist.time_s[-1] == cut.time_s[0] - 60.0  # it ends one window before the recording
+    # the state it leaves predicts the hours after the cut, where equilibrium with the first window does not
+    rest = estimate(PLANT, cut)  # in equilibrium with its first window (working for ever)
+    worked = estimate(PLANT, cut, history=hist, initial="reference")
+    assert worked.metrics["z"].rms_um < 0.25 * rest.metrics["z"].rms_um, (worked.metrics["z"], rest.metrics["z"])
+    # a day at rest at its start gets none
+    assert working_history(PLANT, day) is None
+
+
+def test_cncgw_diagnose_runs_a_day_cut_mid_work_from_its_work_or_from_rest_on_request(tmp_path, capsys):
+    exps = [_experiment(1000.0, start_h=9.0, seed=1, room=False), _experiment(500.0, start_h=14.0, seed=2, room=False),
+            _experiment(500.0, start_h=20.0, seed=3, alternating=True, room=False)]
+    days = [_day(d, seed=10 + d, room=False) for d in range(1, 4)]
+    days[2] = days[2].slice(950, 1440)  # in a pause after hours of work
+    profile = tmp_path / "synthetic.toml"
+    profile.write_text(_PROFILE)
+    files = []
+    for rec in [*exps, *days]:
+        path = tmp_path / rec.source
+        write_recording(path, time_s=rec.time_s, columns={**rec.factors, "z_um": rec.displacement["z"]})
+        files.append(str(path))
+    model = save_model(identify(exps, factors=F, axes=("z",), units=dict(PLANT.units), machine="synthetic").model,
+                       tmp_path / "base.model.toml")
+    docs = {}
+    for how in ("fit", "rest"):
+        out = tmp_path / how
+        assert main(["diagnose", "--profile", str(profile), "--model", str(model), *files, "-o", str(out),
+                     "--initial-state", how]) == 0
+        docs[how] = json.loads((out / "report.json").read_text())
+    capsys.readouterr()
+    (note,) = [n for n in docs["fit"]["notes"] if n.startswith("day3: it seems not to start at rest")]
+    assert "it runs from the work its first hour shows (" in note
+    own_h = sum(len(r) for r in [*exps, *days]) / 60.0  # the recordings' own hours, not the work run before one
+    assert f"6 recording(s), {own_h:.1f} h in all (longest 24.0 h)" in " ".join(docs["fit"]["conclusions"])
+    (note,) = [n for n in docs["rest"]["notes"] if n.startswith("day3: it seems not to start at rest")]
+    assert "diagnose starts every recording in equilibrium with its first window" in note
+    # from its work the good model is fit there; from equilibrium with its first window it was not
+    assert docs["fit"]["adequacy"]["fit"] is True
+    assert docs["rest"]["adequacy"]["fit"] is False
+    with pytest.raises(SystemExit) as refused:  # argparse's own refusal of the value
+        main(["diagnose", "--profile", str(profile), "--model", str(model), *files, "--initial-state", "warm"])
+    assert refused.value.code == 2
+    assert "invalid choice: 'warm' (choose from 'fit', 'rest')" in capsys.readouterr().err
 
 
 def test_the_room_is_named_and_the_rewritten_model_predicts_a_fresh_day(plant_data, diagnosed):
