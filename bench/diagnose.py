@@ -25,6 +25,8 @@ machine's gains and time constants perturbed by seed N, simulators/machine/varia
   fitted on, with
   ``cncgw estimate --json`` and (a) the baseline, (b) the model diagnose wrote (``DIR/*.diagnosed.model.toml``);
 - ``--seen days`` diagnoses the four days alone (the contrast: what the experiments' presence changes);
+- ``--cut-days H`` gives diagnose the production days from H hours after midnight on (a gateway started
+  mid-shift: the days working at H start warm); the fresh day stays whole;
 - the no-effect case of each variant (same schedules and noise, no effect) is the reference: an axis whose
   baseline fresh-day RMS stands above that level (x1.3 and +0.3 um) is an axis the effect moves; an effect
   with no such axis was absorbed by the identification.
