@@ -306,7 +306,7 @@ WORK_MIN_SHARE = 0.75
 
 
 def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "hold") -> tuple[Recording, str] | None:
-    """The hours of work before ``rec`` its first hour shows, as a recording that ends one window before it.
+    """The hours of work before ``rec`` its first hours show, as a recording that ends one window before it.
 
     The machine is taken to have worked before the start as it works in the recording: its factors held, from
     rest, for H hours at the levels of the recording's first window or at their mean over the windows it works in
@@ -317,9 +317,10 @@ def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "h
     are measured there).
 
     Not the state ``--initial-state fit`` fits (:func:`_fit_initial_state`: any mix of the inputs over four spans,
-    which meets the hour best for this model, and fitted there a bundled day cut at 12 h held the spindle at 4500
-    rpm for the 16 h before): a history is run through other models too (paths refitted, terms the model lacks),
-    and only one the machine could have worked makes their states right. The displacement is unmeasured there.
+    whichever meets the hour best for this model; for bench/diagnose.py's slow mode v3, day 3 from 10 h, it held
+    the spindle at 4500 rpm and z's feed at 16000 mm/min over the 8-24 h before, where the machine had rested):
+    a history is run through other models too (paths refitted, terms the model lacks), and only one the machine
+    could have worked makes their states right. The displacement is unmeasured there.
     """
     names = list(model.factors)
     prep = prepare(rec, factors=model.factors, axes=model.axes, initial="reference", reference=model.reference,
@@ -336,7 +337,7 @@ def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "h
         levels["its mean working"] = du[:, working].mean(axis=1)
     dm = model.discretize(rec.period_s)
 
-    def miss(est: np.ndarray) -> float:  # squared error over the first hour, a free zero per axis
+    def miss(est: np.ndarray) -> float:  # squared error over the first hours, a free zero per axis
         total = 0.0
         for i in range(len(model.axes)):
             e = (prep.y[i] - est[i])[first[i]]

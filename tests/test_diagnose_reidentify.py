@@ -174,7 +174,7 @@ def test_a_day_cut_while_the_machine_is_warm_is_said_so_beside_the_verdict_it_sp
     whole = diagnose(base, [*exps, *days])
     assert whole.adequacy.fit, whole.adequacy.lines()
     assert not any("not to start at rest" in n for n in [*whole.notes, *whole.adequacy.lines()])
-    # by default the cut day runs from the work its first hour shows: the good model is fit there too, as on the
+    # by default the cut day runs from the work its first hours show: the good model is fit there too, as on the
     # whole day, within the same bound
     fitted = diagnose(base, [*exps, days[0], days[1], days[2].slice(950, 1440)])
     assert fitted.adequacy.fit, fitted.adequacy.lines()
@@ -182,7 +182,7 @@ def test_a_day_cut_while_the_machine_is_warm_is_said_so_beside_the_verdict_it_sp
     assert worst <= 10, fitted.adequacy.lines()
     (note,) = [n for n in fitted.notes if "not to start at rest" in n]
     assert re.match(r"day3: it seems not to start at rest \(axis z moves [\d.]+ um in the first hour .*\); it runs "
-                    r"from the work its first hour shows \([\d.]+ h at its (first window's|mean working) levels before "
+                    r"from the work its first hours show \([\d.]+ h at its (first window's|mean working) levels before "
                     r"it, from rest, as windows with no displacement\)", note), note
     # ... which it does not for an identification experiment: the model was fitted from that start
     assert start_histories(base, [exps[0], days[2].slice(950, 1440), *days[:2], exps[1]],
@@ -236,7 +236,7 @@ def test_cncgw_diagnose_runs_a_day_cut_mid_work_from_its_work_or_from_rest_on_re
         docs[how] = json.loads((out / "report.json").read_text())
     capsys.readouterr()
     (note,) = [n for n in docs["fit"]["notes"] if n.startswith("day3: it seems not to start at rest")]
-    assert "it runs from the work its first hour shows (" in note
+    assert "it runs from the work its first hours show (" in note
     own_h = sum(len(r) for r in [*exps, *days]) / 60.0  # the recordings' own hours, not the work run before one
     assert f"6 recording(s), {own_h:.1f} h in all (longest 24.0 h)" in " ".join(docs["fit"]["conclusions"])
     (note,) = [n for n in docs["rest"]["notes"] if n.startswith("day3: it seems not to start at rest")]

@@ -95,7 +95,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--initial-state", choices=("fit", "rest"), default="fit",
                    help="fit (default): a recording that seems not to start at rest (cut while the machine worked; "
                         "while such are a minority, and not one of the model's experiments) runs from the hours of "
-                        "work its first hour shows, its own levels held from rest, so no fit takes its unknown start "
+                        "work its first hours show, its own levels held from rest, so no fit takes its unknown start "
                         "for missing physics; rest: every recording starts in equilibrium with its first window")
     p.add_argument("--no-reidentify", action="store_true",
                    help="judge hypotheses only as terms on the frozen model and never re-identify its paths "

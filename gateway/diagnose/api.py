@@ -139,8 +139,8 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
              initial_state: str = "fit", progress: Callable[[str], None] | None = None) -> Diagnosis:
     """Compare ``model`` with ``recordings``, locate the differences, test hypotheses, extend the model.
 
-    ``initial_state``: "fit" runs a recording that seems not to start at rest from the heat history its first
-    hour shows (:func:`start_histories`); "rest" starts every recording in equilibrium with its first window.
+    ``initial_state``: "fit" runs a recording that seems not to start at rest from the hours of work its first
+    hours show (:func:`start_histories`); "rest" starts every recording in equilibrium with its first window.
     """
     t0 = time.perf_counter()
     options = options or Options()
@@ -629,10 +629,10 @@ def start_histories(model: ThermalModel, recordings: Sequence[Recording], warm: 
     (bench/diagnose.py --cut-days 10, plant variants 1-3: the four production days from 10 h on, two or three
     of them working then; 51 cases): the model written was the identified one, unchanged, in 44 of 51 (3 of 51 on
     the whole days); free decays of the state beside every fit took the missing physics' own signature in those
-    days (2 cases changed), and leaving them out left too little to judge on (45 of 51). Given the true hours
-    before 10 h as inputs without displacement (an oracle), 3 of 51: what a known start is worth.
+    days (2 cases changed); left out, too little was left to judge on (45 of 51). Given the true hours before
+    10 h as inputs without displacement (an oracle), 3 of 51: what a known start is worth.
 
-    So each runs from the hours of work its first hour shows (:func:`gateway.replay.working_history`: its own
+    So each runs from the hours of work its first hours show (:func:`gateway.replay.working_history`: its own
     levels held for some hours from rest), as unmeasured windows before it: every path, refitted or not, and
     every term a hypothesis adds starts in the state that work leaves, physics the model lacks included.
 
@@ -660,8 +660,8 @@ def _not_at_rest_notes(stack: Stack, warm: dict[int, str], histories: Mapping[in
     A room that drifts in every recording makes each of them move early: thirteen notes alike said less than one.
     Those that run from a fitted history (``histories``) are said so, one each.
     """
-    out = [f"{stack.labels[r]}: it seems not to start at rest ({warm[r]}); it runs from the work its first hour "
-           f"shows ({said} before it, from rest, as windows with no displacement), so every fit starts it in the "
+    out = [f"{stack.labels[r]}: it seems not to start at rest ({warm[r]}); it runs from the work its first hours "
+           f"show ({said} before it, from rest, as windows with no displacement), so every fit starts it in the "
            "state that work leaves (--initial-state rest: in equilibrium with its first window)"
            for r, (_, said) in histories.items()]
     warm = {r: why for r, why in warm.items() if r not in histories}
