@@ -634,7 +634,8 @@ def start_histories(model: ThermalModel, recordings: Sequence[Recording], warm: 
 
     So each runs from the hours of work its first hours show (:func:`gateway.replay.working_history`: its own
     levels held for some hours from rest), as unmeasured windows before it: every path, refitted or not, and
-    every term a hypothesis adds starts in the state that work leaves, physics the model lacks included.
+    every term a hypothesis adds starts in the state that work leaves, physics the model lacks included. Same
+    bench: 31 of 51 written unchanged, the fresh day >= 30 % better in 18 (6 before, none worse).
 
     Only a minority, and never a recording the model was identified on (its paths were fitted from that start):
     when most recordings move early, a disturbance acting in all of them (a room drifting through every first
