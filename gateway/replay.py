@@ -330,8 +330,7 @@ def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "h
     first = (rel <= WORK_FIT_S)[None, :] & np.isfinite(prep.y)
     if first.sum() < 5 or not du.shape[1]:
         return None
-    size = np.nanmax(np.abs(du), axis=1, initial=0.0)
-    working = (np.abs(du) > 0.01 * size[:, None]).any(axis=0)
+    working = _moving(du).any(axis=0)
     levels = {"its first window's": du[:, 0]}
     if working.any():
         levels["its mean working"] = du[:, working].mean(axis=1)
@@ -402,11 +401,15 @@ def extrapolation_notes(model: ThermalModel, du: np.ndarray, *, margin: float = 
     return notes
 
 
+def _moving(du: np.ndarray, share: float = 0.01) -> np.ndarray:
+    """Per factor and window, whether it is away from rest by more than ``share`` of its largest move."""
+    size = np.abs(du).max(axis=1, keepdims=True)
+    return (np.abs(du) > share * size) & (size > 0)
+
+
 def _lead_in(du: np.ndarray, share: float = 0.01) -> int:
     """Windows before any factor moves by more than ``share`` of its largest move (at least 1)."""
-    size = np.abs(du).max(axis=1, keepdims=True)
-    moving = (np.abs(du) > share * size) & (size > 0)
-    first = np.flatnonzero(moving.any(axis=0))
+    first = np.flatnonzero(_moving(du, share).any(axis=0))
     return max(int(first[0]) if first.size else du.shape[1], 1)
 
 

@@ -54,7 +54,15 @@ from gateway.model.model import ThermalModel
 from gateway.prepare import prepare
 from gateway.profile import Profile
 from gateway.recording import Recording, continued, runs_on_from, split_part
-from gateway.replay import AxisFigures, Estimate, estimate, starts_warm, working_history, works_at_start
+from gateway.replay import (
+    INITIAL_STATES,
+    AxisFigures,
+    Estimate,
+    estimate,
+    starts_warm,
+    working_history,
+    works_at_start,
+)
 
 
 @dataclass(kw_only=True)
@@ -144,8 +152,8 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
     """
     t0 = time.perf_counter()
     options = options or Options()
-    if initial_state not in ("fit", "rest"):
-        raise ValueError(f"initial_state must be 'fit' or 'rest'. Got {initial_state!r}")
+    if initial_state not in INITIAL_STATES:
+        raise ValueError(f"initial_state must be one of {INITIAL_STATES}. Got {initial_state!r}")
     # many small least-squares problems: BLAS threads only contend for the cores (see identify)
     with threadpool_limits(limits=1, user_api="blas"):
         warm = {r: why for r, rec in enumerate(recordings) if (why := starts_warm(model, rec, gap_policy=gap_policy))}
@@ -405,7 +413,7 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
     accepted = {t.hypothesis.key for t in physics} | {t.hypothesis.key for t in (ex.named if ex else [])}
     out += [c.line(accepted=c.key in accepted) for c in d.confusions]
     out += partial_columns(st)
-    span_h = max(b - a - (st.lead[r] if st.lead else 0) for r, (a, b) in enumerate(st.bounds)) * st.dt_s / 3600.0
+    span_h = max(b - st.own_start(r) for r, (_, b) in enumerate(st.bounds)) * st.dt_s / 3600.0
     total_h = st.own_windows * st.dt_s / 3600.0
     k = int(block.max()) + 1 if (block >= 0).any() else 0
     # the time the held-out blocks span: from each recording's burn-in to its last scored window (probe points

@@ -109,9 +109,13 @@ class Stack:
         return [identified_on(model, name, fp)
                 for name, fp in zip(self.names, self.fingerprints or [""] * len(self.names), strict=True)]
 
+    def own_start(self, r: int) -> int:
+        """The index of recording ``r``'s own first window (after the work run before it, if any)."""
+        return self.bounds[r][0] + (self.lead[r] if self.lead else 0)
+
     def start_s(self, r: int) -> float:
-        """The time of recording ``r``'s own first window (after the work run before it, if any)."""
-        return float(self.time_s[self.bounds[r][0] + (self.lead[r] if self.lead else 0)])
+        """The time of recording ``r``'s own first window."""
+        return float(self.time_s[self.own_start(r)])
 
     @property
     def own_windows(self) -> int:
