@@ -11,6 +11,7 @@ import os
 import tempfile
 import threading
 import time
+import uuid
 from pathlib import Path
 
 import pytest
@@ -37,6 +38,21 @@ REALTIME: dict[str, tuple[str, ...] | None] = {
 
 def pytest_configure(config):
     config.addinivalue_line("markers", "realtime: samples on wall time; under pytest-xdist it runs alone (conftest)")
+    if not hasattr(config, "workerinput") and getattr(config.option, "testrunuid", "") is None:
+        # the controller names the run (xdist hands it to the workers) so it can remove the run's lock files after
+        # it: two files per run were left in the temporary folder (212 of them on one PC)
+        config.option.testrunuid = uuid.uuid4().hex
+
+
+def pytest_unconfigure(config):
+    uid = getattr(config.option, "testrunuid", None)
+    if uid and not hasattr(config, "workerinput"):
+        for tail in (".turn", ".lock"):
+            Path(f"{_lock_base(uid)}{tail}").unlink(missing_ok=True)
+
+
+def _lock_base(uid: str) -> Path:
+    return Path(tempfile.gettempdir()) / f"cncgw-tests-{uid}"
 
 
 @pytest.hookimpl(tryfirst=True)  # before ``-m realtime`` / ``-m "not realtime"`` selects on it
@@ -53,7 +69,7 @@ def _alone_or_shared(exclusive: bool):
     takes it exclusively; the turnstile keeps other workers from starting tests while one waits."""
     import fcntl
 
-    base = Path(tempfile.gettempdir()) / f"cncgw-tests-{os.environ['PYTEST_XDIST_TESTRUNUID']}"
+    base = _lock_base(os.environ["PYTEST_XDIST_TESTRUNUID"])
     with open(f"{base}.turn", "a") as turn, open(f"{base}.lock", "a") as lock:
         fcntl.flock(turn, fcntl.LOCK_EX)
         fcntl.flock(lock, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH)
