@@ -186,7 +186,7 @@ def test_a_day_cut_while_the_machine_is_warm_is_said_so_beside_the_verdict_it_sp
     (note,) = [n for n in fitted.notes if "not to start at rest" in n]
     assert re.match(r"day3: it seems not to start at rest \(axis z moves [\d.]+ um in the first hour .*\); it runs "
                     r"from the work its first hours show \([\d.]+ h at its (first window's|mean working) levels before "
-                    r"it, from rest, as windows with no displacement\)", note), note
+                    r"it, from rest, as the identified model chooses it, as windows with no displacement\)", note), note
     # ... which it does not for an identification experiment: the model was fitted from that start
     assert start_histories(base, [exps[0], days[2].slice(950, 1440), *days[:2], exps[1]],
                            {0: "cut", 1: "cut"}).keys() == {1}
@@ -274,7 +274,7 @@ def test_the_work_before_a_day_cut_mid_work_is_chosen_again_by_the_re_identified
     (note,) = [n for n in d.notes if n.startswith("day3: it seems not to start at rest")]
     hours = float(re.search(r"it runs from the work its first hours show \(([\d.]+) h at its", note)[1])
     assert 3.0 <= hours <= 10.0, note  # about the 8 h it had worked
-    assert ", as the re-identified model chooses it before it, from rest" in note, note
+    assert " before it, from rest, as the re-identified model chooses it, as windows with no displacement" in note
     assert "slow_mode:speed" in d.accepted_physics
     # ... where the identified model's own choice alone (one pass) is kept with a worse fit
     monkeypatch.setattr(api, "HISTORY_PASSES", 1)

@@ -183,8 +183,7 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
             now = _one_pass(model, recordings, again, warm, **kw)
             if now.comparison.written.sse < best.comparison.written.sse:
                 best = now
-        histories = best.histories if best is first else {
-            r: (h, f"{said}, as the re-identified model chooses it") for r, (h, said) in best.histories.items()}
+        histories = best.histories
         stack, findings, results, comparison = best.stack, best.findings, best.results, best.comparison
         adequacy, block, hyps, confused = best.adequacy, best.block, best.hypotheses, best.confused
         reid, explanation, missing = best.reid, best.explanation, best.missing
@@ -209,9 +208,10 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
         extended = _supported_region(extended, recordings, reidentified=comparison.chosen != "terms",
                                      gap_policy=gap_policy)
     extended = replace(extended, info={**extended.info, "diagnosis": record})
+    notes = [*stack.notes, *_not_at_rest_notes(stack, warm, histories, again=best is not first)]
     diag = Diagnosis(model=model, extended=extended, stack=stack, findings=findings, hypotheses=hyps, result=result,
                      results=results, options=options, adequacy=adequacy, comparison=comparison, reidentified=reid,
-                     block=block, notes=[*stack.notes, *_not_at_rest_notes(stack, warm, histories)],
+                     block=block, notes=notes,
                      explanation=explanation, confusions=confused)
     diag.conclusions = conclusions(diag, block)
     if options.reidentify and missing:
@@ -727,16 +727,18 @@ def start_histories(model: ThermalModel, recordings: Sequence[Recording], warm: 
     return out
 
 
-def _not_at_rest_notes(stack: Stack, warm: dict[int, str], histories: Mapping[int, tuple[Recording, str]]
-                       ) -> list[str]:
+def _not_at_rest_notes(stack: Stack, warm: dict[int, str], histories: Mapping[int, tuple[Recording, str]], *,
+                       again: bool = False) -> list[str]:
     """Notes on the recordings that seem not to start at rest (by index: why): one each, or one for many.
 
     A room that drifts in every recording makes each of them move early: thirteen notes alike said less than one.
-    Those that run from a fitted history (``histories``) are said so, one each.
+    Those that run from a fitted history (``histories``; ``again``: chosen by the re-identified model) are said
+    so, one each.
     """
+    chosen = "as the re-identified model chooses it" if again else "as the identified model chooses it"
     out = [f"{stack.labels[r]}: it seems not to start at rest ({warm[r]}); it runs from the work its first hours "
-           f"show ({said} before it, from rest, as windows with no displacement), so every fit starts it in the "
-           "state that work leaves (--initial-state rest: in equilibrium with its first window)"
+           f"show ({said} before it, from rest, {chosen}, as windows with no displacement), so every fit starts it "
+           "in the state that work leaves (--initial-state rest: in equilibrium with its first window)"
            for r, (_, said) in histories.items()]
     warm = {r: why for r, why in warm.items() if r not in histories}
     if not warm:
