@@ -217,6 +217,25 @@ def test_a_day_cut_mid_work_runs_from_hours_of_work_like_those_before_it():
     assert working_history(PLANT, day) is None
 
 
+def test_a_file_that_starts_with_a_job_on_a_cold_machine_runs_from_rest_not_from_working_for_ever():
+    # idle until 9 h, then a job at 2000 rpm; the file starts as the job does: the machine was cold. Without a
+    # history it would run as if it had worked at 2000 rpm for ever; the start at rest meets its hours best
+    speed = np.zeros(1440)
+    speed[540:900] = 2000.0
+    day = _record("day", speed, start_s=2 * DAY_S, seed=6, room=False)
+    cut = day.slice(540, len(day))
+    # what identify records: the range each factor covered (a factor beyond a tenth of it works)
+    model = replace(PLANT, info={"deviation_range": {"speed": [0.0, 2500.0], "i_sq": [0.0, 375.0]}})
+    hist, said = working_history(model, cut)
+    assert said == "no work", said
+    assert len(hist) == 1
+    assert hist.factors["speed"][0] == 0.0
+    ever = estimate(model, cut)  # in equilibrium with its first window: worked at 2000 rpm for ever
+    cold = estimate(model, cut, history=hist, initial="reference")
+    assert cold.metrics["z"].rms_um < 0.5, cold.metrics["z"]  # the noise is 0.1 um
+    assert ever.metrics["z"].rms_um > 10 * cold.metrics["z"].rms_um, (ever.metrics["z"], cold.metrics["z"])
+
+
 def test_cncgw_diagnose_runs_a_day_cut_mid_work_from_its_work_or_from_rest_on_request(tmp_path, capsys):
     exps = [_experiment(1000.0, start_h=9.0, seed=1, room=False), _experiment(500.0, start_h=14.0, seed=2, room=False),
             _experiment(500.0, start_h=20.0, seed=3, alternating=True, room=False)]
