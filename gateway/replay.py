@@ -314,7 +314,9 @@ def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "h
     the levels are those whose run through the model, then through ``rec``, meets the first :data:`WORK_FIT_S`
     of measured displacement best (a free zero per axis). Returned with what was chosen, in words; None when
     none leaves under :data:`WORK_MIN_SHARE` of a start at rest's squared error there (or fewer than 5 windows
-    are measured there).
+    are measured there). A recording that works at its first window (:func:`works_at_start`) has no neutral
+    default: without a history it runs as if it had worked so for ever, so that (None) and a start at rest (one
+    window at rest before it: "no work") are choices beside the hours of work, the best fit taken.
 
     Not the state ``--initial-state fit`` fits (:func:`_fit_initial_state`: any mix of the inputs over four spans,
     whichever meets the hour best for this model; for bench/diagnose.py's slow mode v3, day 3 from 10 h, it held
