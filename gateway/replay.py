@@ -347,6 +347,8 @@ def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "h
 
     at_rest = miss(dm.simulate(prep.du))
     best = (at_rest, None, "")
+    bar = WORK_MIN_SHARE * at_rest  # noise and small misses of the model draw some history: one that matters
+    # removes a share of the miss
     if works_at_start(model, rec):
         # working at its first window, the recording starts neither at rest nor in equilibrium with that window
         # for certain: without a history it runs as if it had worked so for ever, so that is one more choice here,
@@ -358,7 +360,7 @@ def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "h
         rest = prep.u0[: len(names)]
         best = min((at_rest, _held(rec, names, rest, rest, 0), "no work"), (miss(dm.simulate(ever.du)), None, ""),
                    key=lambda c: c[0])
-        at_rest = math.inf  # no share to beat
+        bar = math.inf  # no default a share must beat
     for said, level in levels.items():
         if not np.any(level):
             continue
@@ -370,8 +372,7 @@ def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "h
             score = miss(dm.simulate(run.du)[:, k + 1:])
             if score < best[0]:
                 best = (score, hist, f"{hours:g} h at {said} levels")
-    # noise and small misses of the model draw some history or other: one that matters removes a share of the miss
-    return (best[1], best[2]) if best[1] is not None and best[0] < WORK_MIN_SHARE * at_rest else None
+    return (best[1], best[2]) if best[1] is not None and best[0] < bar else None
 
 
 def _held(rec: Recording, names: Sequence[str], rest: np.ndarray, values: np.ndarray, windows: int) -> Recording:

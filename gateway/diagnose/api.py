@@ -176,7 +176,7 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
             if not now.histories or now.reid is None:
                 break
             again = start_histories(model, recordings, warm, gap_policy=gap_policy, choose_with=now.reid.model)
-            if {r: said for r, (_, said) in again.items()} == {r: said for r, (_, said) in now.histories.items()}:
+            if _choices(again) == _choices(now.histories):
                 break
             if progress:
                 progress("the work before the recordings that start warm, chosen again by the re-identified model")
@@ -235,7 +235,6 @@ class _Pass:
     histories: Mapping[int, tuple[Recording, str]]
     stack: Stack
     findings: dict[str, AxisFindings]
-    artefacts: dict[str, list[np.ndarray]]
     adequacy: Adequacy
     block: np.ndarray
     hypotheses: list[Hypothesis]
@@ -245,6 +244,11 @@ class _Pass:
     comparison: Comparison
     explanation: Explanation | None
     missing: list[str]
+
+
+def _choices(histories: Mapping[int, tuple[Recording, str]]) -> dict[int, str]:
+    """What each history holds, in words (by recording): two passes chose alike when these are equal."""
+    return {r: said for r, (_, said) in histories.items()}
 
 
 def _one_pass(model: ThermalModel, recordings: Sequence[Recording], histories: Mapping[int, tuple[Recording, str]],
@@ -327,7 +331,7 @@ def _one_pass(model: ThermalModel, recordings: Sequence[Recording], histories: M
         # more data alone won: which physics reproduces what the re-identified paths changed?
         explanation = explain(stack, model, reid, comparison, hyps, block=block,
                               artefacts=artefacts, options=sub, writable=writable, progress=progress)
-    return _Pass(histories=histories, stack=stack, findings=findings, artefacts=artefacts, adequacy=adequacy,
+    return _Pass(histories=histories, stack=stack, findings=findings, adequacy=adequacy,
                  block=block, hypotheses=hyps, confused=confused, results=results, reid=reid, comparison=comparison,
                  explanation=explanation, missing=missing)
 
