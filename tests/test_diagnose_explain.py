@@ -33,13 +33,13 @@ PLANT = plant.PLANT  # without the slow mode: the identified model's paths
 SLOW_UM_PER_RPM = 0.01  # a 24 h mode on the speed's path: 10 um at 1000 rpm held for days
 
 
-def _diagnosed(monkeypatch: pytest.MonkeyPatch, slow: bool, options: Options | None = None):
-    """(diagnosis, fresh day) of the plant, with or without a 24 h mode, its model the plant's own paths."""
+def _diagnosed(monkeypatch: pytest.MonkeyPatch, slow: bool, options: Options | None = None, *,
+               tau_h: float = 24.0, gain: float = SLOW_UM_PER_RPM):
+    """(diagnosis, fresh day) of the plant, with or without a slow mode (24 h), its model the plant's own paths."""
     truth = PLANT
     if slow:
         speed = truth.path("z", "speed")
-        truth = truth.with_paths([replace(speed, terms=(*speed.terms,
-                                                        FirstOrder(gain=SLOW_UM_PER_RPM, tau_s=24 * 3600.0)))])
+        truth = truth.with_paths([replace(speed, terms=(*speed.terms, FirstOrder(gain=gain, tau_s=tau_h * 3600.0)))])
     monkeypatch.setattr(plant, "PLANT", truth)
     exps = [plant._experiment(1000.0, start_h=9.0, seed=1, room=False),
             plant._experiment(500.0, start_h=14.0, seed=2, room=False),
@@ -69,6 +69,25 @@ def test_a_slow_mode_the_paths_absorbed_is_named_and_its_model_predicts_a_fresh_
     before = estimate(d.model, fresh).metrics["z"].rms_um
     after = estimate(named, fresh).metrics["z"].rms_um
     assert after < 0.5 * before, (before, after)
+
+
+def test_a_mode_far_slower_than_every_recording_is_tried_up_to_3x_their_length_and_said_to_extrapolate(monkeypatch):
+    # a 10-day mode, a ramp on each 24 h recording: the recordings show its gain over its time constant, not
+    # where it levels off; a mode tried as slow as 20 days took a room's drift on such days for one and moved
+    # z 33 um a day over a week-long run
+    d, _ = _diagnosed(monkeypatch, slow=True, tau_h=240.0, gain=0.05)
+    assert "slow_mode:speed" in d.accepted_physics
+    taus = [t for p in d.extended.paths.values() for term in p.terms for t in term.time_constants_s]
+    assert 48 * 3600.0 < max(taus) <= 72 * 3600.0 + 1.0
+    (line,) = [v for v in d.verdict() if v.startswith("the model written")]
+    assert "its slowest mode (72 h, z/speed) is 3x the longest recording (24 h): over a run longer than that it " \
+           "predicts what no recording showed; validate it on one that long (--validate)" in line, line
+
+
+def test_a_slow_mode_the_recordings_show_levelling_off_is_not_said_to_extrapolate(monkeypatch):
+    d, _ = _diagnosed(monkeypatch, slow=True)  # 24 h: the days show most of its rise
+    (line,) = [v for v in d.verdict() if v.startswith("the model written")]
+    assert "slowest mode" not in line, line
 
 
 def test_without_a_slow_mode_nothing_explains_the_change(monkeypatch):

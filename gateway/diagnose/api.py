@@ -402,10 +402,33 @@ def written_verdict(d: Diagnosis) -> str:
             f"{worst.max_error_pct_of_peak:.0f} % of the peak displacement on axis {worst.axis} "
             f"({worst.max_abs_error_um:.3g} of {worst.peak_um:.3g} um)")
     if worst.max_error_pct_of_peak <= 100 * MAX_ERROR_SHARE:
-        return text + f": within the {100 * MAX_ERROR_SHARE:.0f} % a model fit for compensation keeps"
+        return text + f": within the {100 * MAX_ERROR_SHARE:.0f} % a model fit for compensation keeps" + _beyond(d)
     return (text + f": over the {100 * MAX_ERROR_SHARE:.0f} % a model fit for compensation keeps: better than the "
             "identified model, not fit for compensation either; validate it on recordings it never saw (--validate) "
-            "and look for what is still missing before compensating with it")
+            "and look for what is still missing before compensating with it" + _beyond(d))
+
+
+#: a written mode slower than this many lengths of the longest recording is said to extrapolate
+SLOW_CAUTION = 2.0
+
+
+def _beyond(d: Diagnosis) -> str:
+    """A caution when the written model has a mode over twice as slow as the longest recording it was judged on.
+
+    Over a recording a mode much slower than it rises almost as a ramp (at twice its length, 39 % of the way):
+    the recordings show its gain over its time constant more than where it levels off, and a machine that runs
+    on for longer goes where none of them went.
+    """
+    longest = max((b - a for a, b in d.stack.bounds), default=0) * d.stack.dt_s
+    slow = [(t, p) for p in d.extended.paths.values() for term in p.terms for t in term.time_constants_s]
+    if not slow or longest <= 0:
+        return ""
+    tau, path = max(slow, key=lambda s: s[0])
+    if tau <= SLOW_CAUTION * longest:
+        return ""
+    return (f"; its slowest mode ({tau / 3600:.3g} h, {path.axis}/{path.factor}) is {tau / longest:.2g}x the longest "
+            f"recording ({longest / 3600:.3g} h): over a run longer than that it predicts what no recording showed; "
+            "validate it on one that long (--validate) before compensating with it over such runs")
 
 
 def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:

@@ -476,9 +476,25 @@ def _extra_mode(ctx: _Ctx, f: str, taus: Sequence[float]) -> dict[str, list[Sett
     return settings
 
 
+#: the slowest mode tried, in lengths of the longest recording: a mode much slower than every recording is a ramp
+#: on each of them (its gain over its time constant is all they show), and the gain that ramp asks of it is
+#: reached only over runs far longer than any recording (a 480 h mode taken for a room's drift on 24 h days
+#: moved z 33 um a day on a week-long file)
+SLOW_MODE_SPAN = 3.0
+#: its time constants per decade (12 .. 72 h on 24 h days: 6 values, where 12 h .. 20 days took 8 at 4 a decade)
+SLOW_MODE_PER_DECADE = 6
+
+
+def slowest_mode_s(model: ThermalModel, stack: Stack) -> float:
+    """The slowest extra mode diagnosis tries: 3x the longest recording, 4x the identification runs at least."""
+    lo = _Ctx(stack=stack, model=model, info={}, active=[]).identification_length_s()
+    longest = max((b - a for a, b in stack.bounds), default=0) * stack.dt_s
+    return max(4 * lo, SLOW_MODE_SPAN * longest)
+
+
 def _slow_mode(ctx: _Ctx) -> list[Hypothesis]:
     lo = ctx.identification_length_s()
-    taus = log_grid(lo, max(20 * DAY_S, 4 * lo), 4)
+    taus = log_grid(lo, slowest_mode_s(ctx.model, ctx.stack), SLOW_MODE_PER_DECADE)
     return [Hypothesis(
         key=f"slow_mode:{f}", family="slow_mode",
         title=f"slow thermal mode beyond the identification runs (heat of {f})",
@@ -537,3 +553,4 @@ def _sensor_drift(ctx: _Ctx) -> list[Hypothesis]:
                      "own temperature, a creeping fixture): not machine physics, so it is removed from the "
                      "fits and kept out of the model."),
         settings={a: [setting] for a in ctx.axes}, artefact=True)]
+
