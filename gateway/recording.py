@@ -288,17 +288,19 @@ def read_recording(
     period_s: float = 60.0,
     require_displacement: bool = True,
     text: str | None = None,
+    nonnegative: Mapping[str, str] | None = None,
 ) -> Recording:
     """Read one recording CSV.
 
     ``factor_columns`` maps factor name -> column, ``displacement_columns`` axis -> column (um).
     ``time_column=None`` means the file has no time column and rows are ``period_s`` apart. Missing
-    displacement columns are an error only when ``require_displacement``.
+    displacement columns are an error only when ``require_displacement``. ``nonnegative``: factor name -> what
+    it is (``"a mean of squares"``) for the factors no value below zero can be (a negative cell is an error).
     """
     try:
         return _read_recording(Path(path), factor_columns=factor_columns, displacement_columns=displacement_columns,
                                time_column=time_column, period_s=period_s,
-                               require_displacement=require_displacement, text=text)
+                               require_displacement=require_displacement, text=text, nonnegative=nonnegative or {})
     except RecordingError as exc:  # one line, whatever a column name or a cell holds
         raise RecordingError(_clip(str(exc), 1000)) from None
 
@@ -316,7 +318,7 @@ def _binary_kind(head: bytes) -> str:
 
 def _read_recording(path: Path, *, factor_columns: Mapping[str, str], displacement_columns: Mapping[str, str],
                     time_column: str | None, period_s: float, require_displacement: bool,
-                    text: str | None) -> Recording:
+                    text: str | None, nonnegative: Mapping[str, str]) -> Recording:
     if not MIN_PERIOD_S <= period_s <= MAX_PERIOD_S:
         raise RecordingError(f"{path}: the row period must be from {MIN_PERIOD_S:g} s to {MAX_PERIOD_S:g} s (a day), "
                              f"got {period_s!r}")
@@ -415,6 +417,7 @@ def _read_recording(path: Path, *, factor_columns: Mapping[str, str], displaceme
     width = len(header)
     times = np.empty(n)
     numeric_needed = {i: h for i, h in enumerate(header) if i in used and i != t_idx}
+    never_negative = {f_idx[f]: what for f, what in nonnegative.items() if f in f_idx}
     data = np.full((n, width), np.nan)
     text_cells: dict[str, list[str]] = {h: [] for h in extra_cols}
     non_numeric: set[str] = set()
@@ -466,6 +469,10 @@ def _read_recording(path: Path, *, factor_columns: Mapping[str, str], displaceme
                     raise RecordingError(f'{path}:{lineno}: column "{h}": "{_clip(cell)}" {what}')
                 non_numeric.add(h)  # an extra column of such numbers (nanosecond stamps, ids) is kept as text
                 continue
+            if value < 0 and i in never_negative:
+                raise RecordingError(f'{path}:{lineno}: column "{h}": "{_clip(cell)}" is negative: expected a value '
+                                     f">= 0, as {never_negative[i]} never is (a glitch or a sentinel value? leave the "
+                                     "cell empty to make it a gap)")
             data[r, i] = value
 
     if n and not np.all(np.isfinite(times)):
@@ -650,6 +657,11 @@ def _clip(cell: str, width: int = 40) -> str:
     return re.sub(r"[\x00-\x1f\x7f]", lambda m: repr(m.group())[1:-1], shown)
 
 
+#: the factor statistics no window can make negative, in words
+_NEVER_NEGATIVE = {"mean_square": "a mean of squares (stat mean_square)",
+                   "mean_abs": "a mean of absolute values (stat mean_abs)"}  # profile.Stat's values (it imports us)
+
+
 def read_for_profile(path: str | Path, profile: Profile, *, period_s: float | None = None,
                      require_displacement: bool = True) -> Recording:
     """Read a recording laid out as ``profile`` says. ``period_s`` set means: the file has no time column."""
@@ -661,6 +673,7 @@ def read_for_profile(path: str | Path, profile: Profile, *, period_s: float | No
         time_column=None if period_s is not None else rec.time_column,
         period_s=period_s if period_s is not None else rec.period_s,
         require_displacement=require_displacement,
+        nonnegative={f.name: _NEVER_NEGATIVE[f.stat] for f in profile.factors if f.stat in _NEVER_NEGATIVE},
     )
     written = out.extras.get(rec.time_column) if period_s is not None and rec.time_column else None
     if written is not None and np.isfinite(written).sum() > 2:

@@ -178,3 +178,19 @@ def test_live_estimator_says_which_windows_leave_coverage():
     assert outside.outside_coverage == "speed 3000 (above the covered 1000); i1_sq per speed 0.04 (below the covered 0.2)"
     assert DisplacementTracker(small_model(None), window_s=60.0, live=Live()).update(
         _record(1, 3000.0, 124.0)).outside_coverage == ""
+
+
+def test_a_value_far_beyond_anything_identified_is_said_implausible_first():
+    # a cell of -1e9 rpm (a glitch) gave z RMS 4e9 um with one routine coverage note among others
+    cov = coverage_of([spindle_run(1000, 0.2), spindle_run(500, 0.4)], FACTORS)
+    du = spindle_run(3000, 0.04, n=200, on=(50, 90))
+    du[0, 120] = -1e9
+    check = check_coverage(cov, du, FACTORS, {"speed": "rpm"})
+    notes = check.notes(60.0)
+    assert notes[0] == ("implausible value: speed reaches -1e+09 rpm (1 windows, first at window 121), 1e+06x the "
+                        "width of the covered range beyond it: a glitch or a sentinel value (-9999, 32767; leave such "
+                        "a cell empty to make it a gap), or a machine run far beyond anything identified? either way "
+                        "the estimate from there on means little")
+    # 3000 rpm where 1000 were covered is production beyond the experiments (2 widths beyond), not implausible
+    assert sum(n.startswith("implausible") for n in notes) == 1
+    assert any(n.startswith("outside the identification's coverage: speed above coverage: up to 3000 rpm") for n in notes)

@@ -223,3 +223,36 @@ def test_a_recording_written_in_chunks_equals_one_written_whole_and_a_failed_one
         w.write(t, cols)  # no column "c": the export fails half way
     assert (tmp_path / "parts.csv").read_text() == whole  # the earlier file is untouched
     assert not (tmp_path / "parts.csv.tmp").exists()
+
+
+def test_a_negative_mean_square_or_mean_abs_is_refused_by_line_and_a_negative_speed_is_not(tmp_path):
+    # a glitch or a sentinel in a current's column (-50 A^2) was read as heat taken out of the motor
+    from tests_paths import PROFILES
+
+    from gateway.profile import load_profile
+    from gateway.recording import read_for_profile
+
+    profile = load_profile(PROFILES / "sim-vmc.toml")
+    names = ["time_s", *(f.column for f in profile.factors), "x_um", "y_um", "z_um"]
+    rows = [[60.0 * (k + 1), *([0.0] * len(profile.factors)), 0.0, 0.0, 0.0] for k in range(5)]
+    i1, feed, speed = (names.index(c) for c in ("spindle_i1_sq", "x_feed", "spindle_speed"))
+
+    def file(col: int, value: str) -> str:
+        lines = [",".join(names)] + [",".join(f"{v:g}" for v in r) for r in rows]
+        cells = lines[3].split(",")
+        cells[col] = value
+        lines[3] = ",".join(cells)
+        path = tmp_path / f"{names[col]}.csv"
+        path.write_text("\n".join(lines) + "\n")
+        return str(path)
+
+    with pytest.raises(RecordingError) as err:
+        read_for_profile(file(i1, "-50"), profile)
+    assert str(err.value) == (f'{tmp_path}/spindle_i1_sq.csv:4: column "spindle_i1_sq": "-50" is negative: expected '
+                              "a value >= 0, as a mean of squares (stat mean_square) never is (a glitch or a sentinel "
+                              "value? leave the cell empty to make it a gap)")
+    with pytest.raises(RecordingError, match=r'x_feed.csv:4: column "x_feed": "-3" is negative: expected a value >= 0, '
+                                             r"as a mean of absolute values \(stat mean_abs\) never is"):
+        read_for_profile(file(feed, "-3"), profile)
+    rec = read_for_profile(file(speed, "-800"), profile)  # a spindle turning backwards (M04)
+    assert rec.factors["spindle_speed"][2] == -800.0

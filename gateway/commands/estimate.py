@@ -22,6 +22,7 @@ from gateway.commands._common import (
     warn_other_machine,
 )
 from gateway.errors import GatewayError, UsageError
+from gateway.model.coverage import IMPLAUSIBLE
 from gateway.prepare import INITIAL_CHOICES
 from gateway.profile import load_profile
 from gateway.recording import continued, recording_name, runs_on_from, split_part
@@ -172,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
         for e in ests:
             print(f"{e.recording} (model {model_path}):")
             for note in e.notes:
-                print(f"  note: {note}")
+                print(f"  {'warning' if note.startswith(IMPLAUSIBLE) else 'note'}: {note}")
             if not e.metrics:
                 print("  no measured displacement: estimates only")
             for m in e.metrics.values():

@@ -79,6 +79,13 @@ class Coverage:
         object.__setattr__(self, "ratios", tuple(self.ratios))
 
 
+#: a factor beyond its covered range by more than this many times the range's width is implausible (production
+#: at 3x the highest speed an identification covered is 2 widths beyond it; a cell of -1e9 rpm, a million)
+IMPLAUSIBLE_SPANS = 5.0
+#: how a note on an implausible value starts (``cncgw estimate`` prints it as a warning)
+IMPLAUSIBLE = "implausible value:"
+
+
 @dataclass(frozen=True, kw_only=True, slots=True)
 class Excursion:
     """One way a recording left the covered region: a factor's range or a ratio's, how far, how long."""
@@ -92,6 +99,13 @@ class Excursion:
     longest: int  # windows in the longest unbroken stretch outside
     first: int  # index of the first window outside
     unit: str = ""
+    #: the width of the covered range (a factor's range; 0 for a ratio): how far beyond it is judged against it
+    span: float = 0.0
+
+    @property
+    def implausible(self) -> bool:
+        """Beyond the covered range by over :data:`IMPLAUSIBLE_SPANS` times its width: a glitch or a sentinel."""
+        return self.kind == "range" and self.span > 0 and abs(self.value - self.bound) > IMPLAUSIBLE_SPANS * self.span
 
     def how_far(self) -> str:
         """The extreme value against the covered bound, as a multiple when that means something."""
@@ -135,9 +149,14 @@ class CoverageCheck:
         return int(np.count_nonzero(self.outside))
 
     def notes(self, window_s: float) -> list[str]:
-        """One line per excursion, for a report."""
-        return [f"outside the identification's coverage: {e.describe(window_s)}: the estimate extrapolates there"
-                for e in self.excursions]
+        """One line per excursion, for a report; an implausible one first, said as such."""
+        odd = [f"{IMPLAUSIBLE} {e.what} reaches {e.value:.4g}{f' {e.unit}' if e.unit else ''} ({e.windows} windows, "
+               f"first at window {e.first + 1}), {abs(e.value - e.bound) / e.span:.2g}x the width of the covered "
+               "range beyond it: a glitch or a sentinel value (-9999, 32767; leave such a cell empty to make it a "
+               "gap), or a machine run far beyond anything identified? either way the estimate from there on means "
+               "little" for e in self.excursions if e.implausible]
+        return odd + [f"outside the identification's coverage: {e.describe(window_s)}: the estimate extrapolates "
+                      "there" for e in self.excursions]
 
     def window_reason(self, k: int) -> str:
         """Why window ``k`` is outside (``""`` inside)."""
@@ -224,14 +243,15 @@ def check_coverage(cov: Coverage, du: np.ndarray, factors: Sequence[str],
     masks: list[np.ndarray] = []
     excursions: list[Excursion] = []
 
-    def add(mask: np.ndarray, values: np.ndarray, what: str, kind: str, side: str, bound: float, unit: str) -> None:
+    def add(mask: np.ndarray, values: np.ndarray, what: str, kind: str, side: str, bound: float, unit: str,
+            span: float = 0.0) -> None:
         if not mask.any():
             return
         v = values[mask]
         longest, first = _runs(mask)
         excursions.append(Excursion(what=what, kind=kind, side=side, bound=bound, windows=int(mask.sum()),
                                     value=float(v.max() if side == "above" else v.min()), longest=longest,
-                                    first=first, unit=unit))
+                                    first=first, unit=unit, span=span))
         masks.append(mask)
 
     index = {f: k for k, f in enumerate(factors)}
@@ -242,8 +262,8 @@ def check_coverage(cov: Coverage, du: np.ndarray, factors: Sequence[str],
         span = hi - lo
         # a factor the identification never moved: any move beyond rounding leaves the region
         tol = cov.margin * span if span > 0 else 1e-9 * (1.0 + float(np.max(np.abs(x), initial=0.0)))
-        add(x > hi + tol, x, f, "range", "above", hi, units.get(f, ""))
-        add(x < lo - tol, x, f, "range", "below", lo, units.get(f, ""))
+        add(x > hi + tol, x, f, "range", "above", hi, units.get(f, ""), span)
+        add(x < lo - tol, x, f, "range", "below", lo, units.get(f, ""), span)
     for r in cov.ratios:
         if r.of not in index or r.per not in index or n == 0:
             continue
