@@ -290,6 +290,13 @@ def test_every_exit_code_is_in_help_and_readme_and_every_error_has_one():
     assert rows == codes
 
 
+def test_diagnose_history_without_validate_is_a_usage_error_not_ignored(workdir, capsys):
+    assert main(["diagnose", "--profile", "sim-vmc", "day1.csv", "--history", "day0.csv"]) == 2
+    assert capsys.readouterr().err == ("cncgw: error: --history day0.csv: it carries the machine's state into the first "
+                                       "--validate recording, and no --validate was given (expected --validate "
+                                       "RECORDING with it)\n")
+
+
 def test_a_bad_argument_value_found_after_parsing_is_a_usage_error(workdir, capsys):
     from tests_paths import PROFILES
 

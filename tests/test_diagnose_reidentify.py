@@ -370,6 +370,13 @@ def test_validation_starts_from_the_day_before_or_from_a_fitted_state(plant_data
     (carried,) = validate(d, [after_day4], earlier=days)
     assert carried.start.startswith("carried from day1, day2, day3, day4")
     assert carried.settings["history"] == "day4.csv"
+    # a --history that ended days before: carried, and said so (it read "ran just before it" of a day 72 h later)
+    later = _day(8, seed=80)
+    (gapped,) = validate(d, [later], history=days[3])
+    gap_h = (later.time_s[0] - days[3].time_s[-1] - later.period_s) / 3600.0
+    assert gap_h > 48
+    assert gapped.start == (f"carried from day4 (--history), which ends {gap_h:.3g} h before it starts: the gap "
+                            "policy hold bridges the hours between")
     # the same two days as runs of one file split by its day column (--split-by day): each starts in its own
     # equilibrium, as the diagnosis took them, though the times run on from one to the next
     run4, run5 = (replace(r, source=f"days.csv[day={k}]") for k, r in ((4, days[3]), (5, after_day4)))

@@ -112,6 +112,10 @@ def run(args: argparse.Namespace) -> int:
     from gateway.diagnose.report import to_json
 
     check_output("-o", args.output, directory=True)
+    if args.history and not args.validate:
+        # it was read and dropped without a word: the diagnosed recordings each start on their own
+        raise UsageError(f"--history {args.history}: it carries the machine's state into the first --validate "
+                         "recording, and no --validate was given (expected --validate RECORDING with it)")
     profile = load_profile(args.profile)
     model, model_path = load_model_for(profile, args.model)
     recs = read_recordings(args.recordings, profile, period_s=args.period_s, require_displacement=False)

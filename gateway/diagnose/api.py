@@ -685,6 +685,10 @@ def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence
         initial_state, initial = "rest", "first"
         if hist is not None:
             start = f"carried from {', '.join(label[p.source] for p in before_it)} (ran just before it)"
+            gap_s = float(rec.time_s[0] - hist.time_s[-1]) - rec.period_s if len(hist) and len(rec) else 0.0
+            if gap_s > 0.5 * rec.period_s:  # a --history that ended earlier: the gap policy bridges it
+                start = (f"carried from {label[before_it[0].source]} (--history), which ends {gap_s / 3600:.3g} h "
+                         f"before it starts: the gap policy {gap_policy} bridges the hours between")
         else:
             warm = starts_warm(d.extended, rec, gap_policy=gap_policy)
             if warm:
