@@ -183,6 +183,10 @@ def estimate(
         if not ok.any():
             if a in rec.displacement:
                 notes.append(f"axis {a}: no measured value in any window")
+            elif rec.displacement:  # the others measured: a column missing or renamed, not a file of inputs only
+                notes.append(f"axis {a}: not in this file (no displacement column for it, where "
+                             f"{', '.join(rec.displacement)} {'has' if len(rec.displacement) == 1 else 'have'} one): "
+                             "estimated, not scored")
             continue
         if align == "start":
             lead = np.zeros_like(ok)
@@ -199,12 +203,19 @@ def estimate(
         measured[i] -= offset
         metrics[a] = AxisFigures.of(a, measured[i, ok] - est[i, ok], measured[i, ok])
         offsets[a] = offset
+    if metrics and len(rec) < MIN_SCORED_WINDOWS:
+        notes.append(f"only {len(rec)} window(s) ({len(rec) * rec.period_s / 60:.3g} min): too short for its figures "
+                     f"to say anything (diagnose --validate takes at least {MIN_SCORED_WINDOWS} measured)")
     settings = {"initial": initial, "gap_policy": gap_policy, "align": align, "initial_state": initial_state}
     if history is not None:
         settings["history"] = history.source
     return Estimate(recording=rec.source, axes=model.axes, time_s=time_s, estimated=est,
                     measured=measured, present=prep.present[skip:], metrics=metrics, offsets_um=offsets,
                     notes=tuple(notes), settings=settings, coverage=check)
+
+
+#: fewer measured windows than this say nothing of a model (a 5-minute file: "max error 100 % of peak")
+MIN_SCORED_WINDOWS = 10
 
 
 def coverage_json(check: CoverageCheck, window_s: float) -> dict[str, object]:

@@ -194,3 +194,28 @@ def test_a_value_far_beyond_anything_identified_is_said_implausible_first():
     # 3000 rpm where 1000 were covered is production beyond the experiments (2 widths beyond), not implausible
     assert sum(n.startswith("implausible") for n in notes) == 1
     assert any(n.startswith("outside the identification's coverage: speed above coverage: up to 3000 rpm") for n in notes)
+
+
+def test_estimate_says_when_an_axis_is_missing_from_the_file_or_the_file_is_too_short():
+    model = small_model(None)
+    model = ThermalModel(axes=("x", "z"), factors=model.factors, units=model.units, reference=model.reference,
+                         paths={**model.paths, **{("x", f): PathTF(axis="x", factor=f, terms=p.terms)
+                                                  for (_, f), p in model.paths.items()}})
+
+    def rec(n: int, axes: tuple[str, ...]) -> Recording:
+        return Recording(source="r.csv", period_s=60.0, time_s=60.0 * np.arange(1, n + 1),
+                         present=np.ones(n, dtype=bool),
+                         factors={"speed": np.full(n, 500.0), "i1_sq": np.full(n, 6.0), "feed": np.zeros(n)},
+                         displacement={a: np.zeros(n) for a in axes})
+
+    # z's column missing (renamed, dropped) while x has one: it was estimated and left out of the figures silently
+    e = estimate(model, rec(120, ("x",)))
+    assert set(e.metrics) == {"x"}
+    assert "axis z: not in this file (no displacement column for it, where x has one): estimated, not scored" in e.notes
+    assert not any("not in this file" in n for n in estimate(model, rec(120, ("x", "z"))).notes)
+    assert not any("not in this file" in n for n in estimate(model, rec(120, ())).notes)  # inputs only: no figures
+    # five minutes: "max error 100 % of peak" said nothing, and nothing said so
+    short = estimate(model, rec(5, ("x", "z")))
+    assert ("only 5 window(s) (5 min): too short for its figures to say anything (diagnose --validate takes at least "
+            "10 measured)") in short.notes
+    assert not any(n.startswith("only ") for n in estimate(model, rec(10, ("x", "z"))).notes)

@@ -110,6 +110,7 @@ def run(args: argparse.Namespace) -> int:
     from gateway.diagnose import Options, diagnose, factor_infos, write_report
     from gateway.diagnose.api import validate, validation_summary
     from gateway.diagnose.report import to_json
+    from gateway.replay import MIN_SCORED_WINDOWS
 
     check_output("-o", args.output, directory=True)
     if args.history and not args.validate:
@@ -144,10 +145,10 @@ def run(args: argparse.Namespace) -> int:
     for v in vrecs:
         measured = int(np.isfinite(np.vstack(list(v.displacement.values()))).any(axis=0).sum()) \
             if v.displacement else 0
-        if measured < MIN_VALIDATION_WINDOWS:
+        if measured < MIN_SCORED_WINDOWS:
             columns = ", ".join(f'"{c}"' for c in profile.recording.displacement_columns.values())
             raise UsageError(f"--validate {v.source}: {measured} window(s) with measured displacement ({columns}): a "
-                             f"validation needs at least {MIN_VALIDATION_WINDOWS} to say anything")
+                             f"validation needs at least {MIN_SCORED_WINDOWS} to say anything")
         same = fitted.get(v.fingerprint(model.factors))
         if same is not None:
             raise UsageError(f"--validate {v.source}: the same data as {same}, which is diagnosed: validation takes "
@@ -236,10 +237,6 @@ def _check_signals(columns: list[str], recs: list) -> None:
         if not any(c in r.extras for r in recs):
             raise UsageError(f"--use-signal {c}: no recording has a column {c!r} beside the profile's factors and "
                              f"displacement (recorded columns: {', '.join(have) or 'none'})")
-
-
-#: a --validate recording with fewer windows of measured displacement is refused
-MIN_VALIDATION_WINDOWS = 10
 
 
 def _check_blocks(given: int | None, recs: list) -> int:
