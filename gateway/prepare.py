@@ -37,7 +37,7 @@ import numpy as np
 
 from gateway.errors import RecordingError
 from gateway.model.inputs import Column, DerivedInput, evaluate_inputs, initial_values
-from gateway.recording import Recording
+from gateway.recording import Recording, number_or_blank
 
 INITIAL_CHOICES = ("first", "reference")
 #: a recording whose displacement is measured on fewer than this share of its windows is sampled (probes)
@@ -196,9 +196,16 @@ def _derived(rec: Recording, inputs: Sequence[DerivedInput], factors: Sequence[s
         if isinstance(inp, Column):
             col = rec.extras.get(inp.column)
             if col is None or not np.isfinite(col).any():
+                head = f'{rec.source}: the model\'s input {inp.name} reads column "{inp.column}", '
+                cells = rec.text.get(inp.column)
+                odd = next(((k, c) for k, c in enumerate(cells or ()) if not number_or_blank(c)), None)
+                if odd is not None:  # read as text for one cell that is not a number: say which
+                    raise RecordingError(head + f'which holds text: "{odd[1][:40]}" in its data row {odd[0] + 1} '
+                                         "(expected numbers; leave a cell empty to make it a gap)")
+                if col is not None or cells is not None:
+                    raise RecordingError(head + "which has no value in any row of this recording (expected numbers)")
                 have = ", ".join(sorted(rec.extras)) or "none"
-                raise RecordingError(f'{rec.source}: the model\'s input {inp.name} reads column "{inp.column}", '
-                                     f"which this recording does not have (numeric extra columns: {have})")
+                raise RecordingError(head + f"which this recording does not have (numeric extra columns: {have})")
             columns[inp.column] = col
     initial = {f: float(v) for f, v in zip(factors, u0, strict=True)}
     initial |= {c: float(v[np.isfinite(v)][0]) for c, v in columns.items()}

@@ -311,6 +311,12 @@ _MAGIC = ((b"PK\x03\x04", "a zip archive (an Excel .xlsx workbook is one)"),
           (b"%PDF", "a PDF document"), (b"\x89PNG", "a PNG image"), (b"\x1f\x8b", "a gzip archive"))
 
 
+def number_or_blank(cell: str) -> bool:
+    """Whether a cell reads as a number or as a missing value (a gap), as a factor's or displacement's would."""
+    cell = cell.strip()
+    return cell in _MISSING_TOKENS or cell.lower() == "nan" or bool(_NUMBER.fullmatch(cell))
+
+
 def _binary_kind(head: bytes) -> str:
     """What a file that is no text is, from its first bytes ("" when not known)."""
     return next((kind for magic, kind in _MAGIC if head.startswith(magic)), "")

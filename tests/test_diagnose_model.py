@@ -176,3 +176,29 @@ def test_a_recording_without_the_column_an_input_reads_is_rejected_by_name():
     with pytest.raises(RecordingError, match='the model\'s input room reads column "room_c", which this recording '
                                              r"does not have \(numeric extra columns: none\)"):
         prepare(recording(room=False), factors=FACTORS, axes=("z",), inputs=(Column(name="room", column="room_c"),))
+
+
+def test_a_column_an_input_reads_that_holds_text_or_nothing_is_said_so_not_missing(tmp_path):
+    # one "ERR" cell made the thermometer a text column, and the message said the file had no such column
+    from gateway.recording import read_recording
+
+    n = 30
+    rows = ["time_s,speed,i1_sq,z_i_sq,z_um,room_c"] + [f"{60 * (k + 1)},0,0,13,0,{20 + 0.01 * k:g}" for k in range(n)]
+    inputs = (Column(name="room", column="room_c"),)
+
+    def prepared(cells: dict[int, str]) -> None:
+        lines = list(rows)
+        for k, cell in cells.items():
+            lines[k + 1] = lines[k + 1].rsplit(",", 1)[0] + "," + cell
+        path = tmp_path / "r.csv"
+        path.write_text("\n".join(lines) + "\n")
+        rec = read_recording(path, factor_columns={f: f for f in FACTORS}, displacement_columns={"z": "z_um"})
+        prepare(rec, factors=FACTORS, axes=("z",), inputs=inputs)
+
+    prepared({3: ""})  # an empty cell is a gap
+    with pytest.raises(RecordingError) as err:
+        prepared({7: "ERR"})
+    assert str(err.value) == (f'{tmp_path}/r.csv: the model\'s input room reads column "room_c", which holds text: "ERR" '
+                              "in its data row 8 (expected numbers; leave a cell empty to make it a gap)")
+    with pytest.raises(RecordingError, match='reads column "room_c", which has no value in any row of this recording'):
+        prepared(dict.fromkeys(range(n), ""))
