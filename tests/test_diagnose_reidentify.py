@@ -559,6 +559,13 @@ def test_a_file_of_several_runs_is_split_alike_by_identify_diagnose_and_estimate
     assert (f"--validate {day_file}[run=1]: the same data as {day_file}[run=1], which is diagnosed: validation "
             "takes recordings never used for fitting or selection") in capsys.readouterr().err
     train = joined(tmp_path / "train.csv", days)
+    # the runs diagnosed from one file, validated in another that holds them and one more, neither split: it was
+    # taken for "never fitted"
+    assert main(["diagnose", "--profile", str(profile), "--model", str(model), exp_file, train, "-o", str(out),
+                 "--validate", day_file]) == 2
+    n = sum(len(d) for d in days)
+    assert (f"--validate {day_file}: {n} of its windows are the same data as {train} (the same times, inputs and "
+            "measured displacement), which is diagnosed") in capsys.readouterr().err
     (tmp_path / "my runs").mkdir()  # a folder with a space: the printed command quotes it
     val = joined(tmp_path / "my runs" / "val.csv", [_day(5, seed=50), fresh])  # run 2 follows run 1: not carried
     assert main(["diagnose", "--profile", str(profile), "--model", str(model), exp_file, train, "--split-by",

@@ -6,6 +6,7 @@ import argparse
 import dataclasses
 import json
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,7 @@ from gateway.commands._common import (
 )
 from gateway.errors import GatewayError, UsageError
 from gateway.profile import Profile, load_profile
-from gateway.recording import displacement_lookalikes
+from gateway.recording import Recording, displacement_lookalikes
 
 
 def _share(text: str) -> float:
@@ -153,6 +154,12 @@ def run(args: argparse.Namespace) -> int:
         if same is not None:
             raise UsageError(f"--validate {v.source}: the same data as {same}, which is diagnosed: validation takes "
                              "recordings never used for fitting or selection (give it only after --validate)")
+        for r in recs:  # a part of it diagnosed (days 1-4 diagnosed, the file of days 1-4 given to validate)
+            shared = _shared_windows(v, r, model.factors)
+            if shared >= max(MIN_SCORED_WINDOWS, SHARED_SHARE * len(r)):
+                raise UsageError(f"--validate {v.source}: {shared} of its windows are the same data as {r.source} "
+                                 "(the same times, inputs and measured displacement), which is diagnosed: validation "
+                                 "takes recordings never used for fitting or selection")
     history = read_history(args, profile)
     # what it tries as it goes (a bar on a terminal, nothing in a pipe): a diagnosis takes tens of seconds
     update, close = progress_bar(None, "diagnose")
@@ -237,6 +244,35 @@ def _check_signals(columns: list[str], recs: list) -> None:
         if not any(c in r.extras for r in recs):
             raise UsageError(f"--use-signal {c}: no recording has a column {c!r} beside the profile's factors and "
                              f"displacement (recorded columns: {', '.join(have) or 'none'})")
+
+
+#: a --validate recording holding this share of a diagnosed one's windows holds that recording
+SHARED_SHARE = 0.25
+
+
+def _shared_windows(v: Recording, r: Recording, factors: Sequence[str]) -> int:
+    """The windows ``v`` and ``r`` share: the same time, every factor and measured displacement the same.
+
+    Windows at rest with a displacement of zero are not counted (two files timed from 0 meet there by chance).
+    """
+    _, iv, ir = np.intersect1d(v.time_s, r.time_s, assume_unique=True, return_indices=True)
+    if not len(iv):
+        return 0
+    same = np.ones(len(iv), dtype=bool)
+    for f in factors:
+        a, b = v.factors.get(f), r.factors.get(f)
+        if a is None or b is None:
+            return 0
+        same &= a[iv] == b[ir]
+    measured = np.zeros(len(iv), dtype=bool)
+    for axis, a in v.displacement.items():
+        b = r.displacement.get(axis)
+        if b is None:
+            continue
+        both = np.isfinite(a[iv]) & np.isfinite(b[ir])
+        same &= ~both | (a[iv] == b[ir])
+        measured |= both & (a[iv] != 0)
+    return int(np.count_nonzero(same & measured))
 
 
 def _check_blocks(given: int | None, recs: list) -> int:
