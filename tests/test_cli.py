@@ -290,6 +290,15 @@ def test_every_exit_code_is_in_help_and_readme_and_every_error_has_one():
     assert rows == codes
 
 
+@pytest.mark.parametrize("value", ["0", "1", "1.5", "-0.1", "nan", "x"])
+def test_a_share_option_out_of_0_1_names_both_bounds(workdir, capsys, value):
+    with pytest.raises(SystemExit) as refused:
+        main(["diagnose", "--profile", "sim-vmc", "day1.csv", "--alpha", value])
+    assert refused.value.code == 2
+    assert (f"argument --alpha: expected a number between 0 and 1 (exclusive), got '{value}'"
+            in capsys.readouterr().err)
+
+
 def test_diagnose_history_without_validate_is_a_usage_error_not_ignored(workdir, capsys):
     assert main(["diagnose", "--profile", "sim-vmc", "day1.csv", "--history", "day0.csv"]) == 2
     assert capsys.readouterr().err == ("cncgw: error: --history day0.csv: it carries the machine's state into the first "

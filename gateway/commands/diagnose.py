@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -31,9 +32,12 @@ from gateway.recording import Recording, displacement_lookalikes
 
 
 def _share(text: str) -> float:
-    value = positive_float(text)
-    if value >= 1:
-        raise argparse.ArgumentTypeError(f"expected a number between 0 and 1, got {text!r}")
+    try:
+        value = positive_float(text)
+    except argparse.ArgumentTypeError:
+        value = math.nan
+    if not 0 < value < 1:  # one message for 0 and for 1.5 ("> 0" of 0 hid the upper bound)
+        raise argparse.ArgumentTypeError(f"expected a number between 0 and 1 (exclusive), got {text!r}")
     return value
 
 
