@@ -337,6 +337,30 @@ def test_the_rewritten_model_covers_and_bounds_the_days_it_was_fitted_on(plant_d
     assert "diagnosis: 7 recordings" in d.extended.envelope.source
 
 
+def test_a_room_thermometer_on_the_production_days_only_is_named_and_its_model_written():
+    # the room acts in every recording, but the thermometer came with the production days: the experiments have
+    # no room_c. It is tried, taken as constant where it is missing (the diagnosis ended in "exp1.csv: the model's
+    # input room_c reads column room_c, which this recording does not have" once it had chosen it)
+    def thermometer(rec: Recording) -> Recording:
+        t = rec.time_s
+        room = 20.0 + 1.5 * np.cos(2 * np.pi * (t - 15 * 3600.0) / DAY_S) + 0.02 * (t - t[0]) / 3600.0
+        return replace(rec, extras={"room_c": np.round(room, 2)})
+
+    exps = [_experiment(1000.0, start_h=9.0, seed=1), _experiment(500.0, start_h=14.0, seed=2),
+            _experiment(500.0, start_h=20.0, seed=3, alternating=True)]
+    days = [thermometer(_day(d, seed=10 + d)) for d in range(1, 5)]
+    fresh = thermometer(_day(6, seed=99))
+    base = identify(exps, factors=F, axes=("z",), units=dict(PLANT.units), machine="synthetic").model
+    d = diagnose(base, [*exps, *days])
+    assert d.accepted_physics == ["room_recorded:room_c"]
+    assert [i.column for i in d.extended.inputs] == ["room_c"]
+    assert any(c.startswith("column room_c is recorded in 4 of 7 recordings") and "take it as constant in the others"
+               in c for c in d.conclusions)
+    before = estimate(base, fresh).metrics["z"].rms_um
+    after = estimate(d.extended, fresh).metrics["z"].rms_um
+    assert after < 0.2 * before, (before, after)
+
+
 def test_without_the_room_nothing_is_named_and_the_written_model_is_no_worse():
     exps = [_experiment(1000.0, start_h=9.0, seed=1, room=False), _experiment(500.0, start_h=14.0, seed=2, room=False),
             _experiment(500.0, start_h=20.0, seed=3, alternating=True, room=False)]

@@ -50,6 +50,7 @@ from gateway.diagnose.select import BURN_IN, blocks_to_decide, make_blocks
 from gateway.errors import RecordingError
 from gateway.model.coverage import check_coverage, coverage_of
 from gateway.model.envelope import envelope_of
+from gateway.model.inputs import Column
 from gateway.model.model import ThermalModel
 from gateway.prepare import prepare
 from gateway.profile import Profile
@@ -346,6 +347,10 @@ def _supported_region(model: ThermalModel, recordings: Sequence[Recording], *, r
     of them span; a model with terms on frozen paths keeps the identification's coverage (its paths saw only
     the experiments).
     """
+    # a recording without a column an input of the model reads (a room thermometer only on the production days)
+    # is none this model can run on
+    columns = [i.column for i in model.inputs if isinstance(i, Column)]
+    recordings = [r for r in recordings if all(c in r.extras and np.isfinite(r.extras[c]).any() for c in columns)]
     preps = [prepare(r, factors=model.factors, axes=model.axes, reference=model.reference, gap_policy=gap_policy,
                      inputs=model.inputs) for r in recordings]
     source = f"diagnosis: {len(recordings)} recordings"
