@@ -120,6 +120,8 @@ class Effect:
     tables: dict  # [effects.NAME] -> parameters (room_cycle's peak_at_h is set per recording)
     families: tuple[str, ...] = ()  # accepted names whose family starts with one of these are right
     thermometer: bool = False
+    #: the thermometer in the identification experiments too (else on the production days only)
+    thermometer_in_experiments: bool = True
     step: bool = False
     note: str = ""
     truth: str = ""  # the simulator's effect name in the truth file
@@ -152,6 +154,10 @@ CABINET_COOLED = {"w_per_a2": 3.0, "cooler_w": 120.0, "cooler_on_k": 4.0, "coole
 EFFECTS: dict[str, Effect] = {
     "room recorded": Effect({"room_cycle": ROOM}, ("room_recorded",), thermometer=True, truth="room_cycle",
                             note="daily 3 K swing, 0.02 K/h drift; room_c recorded"),
+    # the thermometer came with production: the experiments have no room_c (47 % of the windows have it)
+    "room recorded on days": Effect({"room_cycle": ROOM}, ("room_recorded",), thermometer=True,
+                                    thermometer_in_experiments=False, truth="room_cycle",
+                                    note="daily 3 K swing, 0.02 K/h drift; room_c on the production days only"),
     "room not recorded": Effect({"room_cycle": ROOM}, ("room", "disturbance", "daily"), truth="room_cycle",
                                 note="daily 3 K swing, 0.02 K/h drift; no thermometer"),
     "eddy loss": Effect({"eddy_loss": {"loss_w_at_1000rpm": 15.0}}, ("eddy_loss",), truth="eddy_loss",
@@ -312,7 +318,7 @@ def new_plan(effect_name: str, variant: int, n_days: int = 4) -> Plan:
         doc["scenario"]["description"] = f"{doc['scenario'].get('description', '')}; starts at {starts[k]:.2f} h"
         doc["scenario"]["start_time_s"] = EPOCH0_S + k * DAY_S + round(starts[k] * 3600.0)
         doc["room"] = {"temperature_c": round(float(base[k]), 3),
-                       "thermometer": effect.thermometer}
+                       "thermometer": effect.thermometer and effect.thermometer_in_experiments}
         step = 12.0 * step_h[4] if (effect.step and k == step_exp) else None
         tables = _effect_tables(effect, start_h=float(starts[k]), step_at_h=step)
         if tables:

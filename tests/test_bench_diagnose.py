@@ -54,6 +54,10 @@ def test_the_room_keeps_its_time_of_day_in_each_experiment(bench):
     assert all(sc.room.thermometer for sc in plan.values())
     assert plan["day1"].effects.room_cycle.peak_at_h == 15.0  # days run from midnight, warmest at 15:00
     assert plan["day1"].effects.room_cycle.drift_k_per_h == 0.02
+    # the same room with the thermometer on the production days only
+    days_only = _parse(bench.new_plan("room recorded on days", 1))
+    assert {n for n, sc in days_only.items() if sc.room.thermometer} == {"day1", "day2", "day3", "day4", "fresh"}
+    assert all(days_only[n].effects == sc.effects for n, sc in plan.items())
 
 
 def test_schedules_and_noise_depend_on_the_variant_not_the_effect(bench):
