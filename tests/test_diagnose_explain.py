@@ -286,7 +286,9 @@ def test_a_term_that_explains_less_than_all_is_still_written_when_it_predicts_si
 
     d.explanation, d.result = ex, ex.result
     text = "\n".join(conclusions(d, d.block))
-    assert "missing physics: slow thermal mode" in text
+    # written, but not "missing physics" two lines above "not named"
+    assert "written, not named: slow thermal mode" in text
+    assert "missing physics" not in text
     assert "does not explain all of it" in text
     assert "no family is named" not in text
 

@@ -457,6 +457,11 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
             out.append(f"{t.hypothesis.title} passed the hypothesis search (held-out squared error down {gain}), but "
                        "no model with it predicts the recordings the identified model did not train on better: "
                        "not named as missing, not written")
+        elif d.comparison.chosen == "explained" and d.explanation is not None and d.explanation.written_unexplained:
+            # in the model written for predicting best, but it explains only part of what more data changed: the
+            # line below says "not named", and this one said "missing physics"
+            out.append(f"written, not named: {t.hypothesis.title} (held-out squared error down {gain}{how}; it "
+                       "explains only part of what more data changed in the paths, see below)")
         else:
             out.append(f"missing physics: {t.hypothesis.title} (held-out squared error down {gain}{how})")
     for c in cands.values():
