@@ -154,8 +154,9 @@ CABINET_COOLED = {"w_per_a2": 3.0, "cooler_w": 120.0, "cooler_on_k": 4.0, "coole
 EFFECTS: dict[str, Effect] = {
     "room recorded": Effect({"room_cycle": ROOM}, ("room_recorded",), thermometer=True, truth="room_cycle",
                             note="daily 3 K swing, 0.02 K/h drift; room_c recorded"),
-    # the thermometer came with production: the experiments have no room_c (47 % of the windows have it)
-    "room recorded on days": Effect({"room_cycle": ROOM}, ("room_recorded",), thermometer=True,
+    # the thermometer came with production: the experiments have no room_c (47 % of the windows have it); the
+    # room named by its thermometer or by its daily cycle (the time of day every recording has) is the room
+    "room recorded on days": Effect({"room_cycle": ROOM}, ("room",), thermometer=True,
                                     thermometer_in_experiments=False, truth="room_cycle",
                                     note="daily 3 K swing, 0.02 K/h drift; room_c on the production days only"),
     "room not recorded": Effect({"room_cycle": ROOM}, ("room", "disturbance", "daily"), truth="room_cycle",

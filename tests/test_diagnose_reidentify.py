@@ -337,10 +337,11 @@ def test_the_rewritten_model_covers_and_bounds_the_days_it_was_fitted_on(plant_d
     assert "diagnosis: 7 recordings" in d.extended.envelope.source
 
 
-def test_a_room_thermometer_on_the_production_days_only_is_named_and_its_model_written():
+def test_a_room_thermometer_on_the_production_days_only_is_tried_beside_the_time_of_day():
     # the room acts in every recording, but the thermometer came with the production days: the experiments have
     # no room_c. It is tried, taken as constant where it is missing (the diagnosis ended in "exp1.csv: the model's
-    # input room_c reads column room_c, which this recording does not have" once it had chosen it)
+    # input room_c reads column room_c, which this recording does not have" once it had chosen it), and so is the
+    # daily cycle, whose time of day every recording has: here the cycle predicts better and is taken
     def thermometer(rec: Recording) -> Recording:
         t = rec.time_s
         room = 20.0 + 1.5 * np.cos(2 * np.pi * (t - 15 * 3600.0) / DAY_S) + 0.02 * (t - t[0]) / 3600.0
@@ -352,10 +353,22 @@ def test_a_room_thermometer_on_the_production_days_only_is_named_and_its_model_w
     fresh = thermometer(_day(6, seed=99))
     base = identify(exps, factors=F, axes=("z",), units=dict(PLANT.units), machine="synthetic").model
     d = diagnose(base, [*exps, *days])
-    assert d.accepted_physics == ["room_recorded:room_c"]
-    assert [i.column for i in d.extended.inputs] == ["room_c"]
+    tried = {t.hypothesis.key for t in d.result.trials}
+    assert {"room_recorded:room_c", "room_daily"} <= tried
+    assert d.accepted_physics == ["room_daily"]
     assert any(c.startswith("column room_c is recorded in 4 of 7 recordings") and "take it as constant in the others"
                in c for c in d.conclusions)
+    # with the thermometer in every recording, it alone is tried
+    full = diagnose(base, [*(thermometer(e) for e in exps), *days])
+    assert "room_daily" not in {t.hypothesis.key for t in full.result.trials}
+    assert full.accepted_physics[0] == "room_recorded:room_c"
+    # a model that reads room_c gets its envelope and coverage from the recordings that have it, not an error
+    # from the others
+    from gateway.diagnose.api import _supported_region
+
+    region = _supported_region(full.extended, [*exps, *days], reidentified=True, gap_policy="hold")
+    assert region.coverage is not None
+    assert region.coverage.source == "diagnosis: 4 recordings"
     before = estimate(base, fresh).metrics["z"].rms_um
     after = estimate(d.extended, fresh).metrics["z"].rms_um
     assert after < 0.2 * before, (before, after)
