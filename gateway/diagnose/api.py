@@ -424,7 +424,7 @@ def _beyond(d: Diagnosis) -> str:
     the recordings show its gain over its time constant more than where it levels off, and a machine that runs
     on for longer goes where none of them went.
     """
-    longest = max((b - a for a, b in d.stack.bounds), default=0) * d.stack.dt_s
+    longest = d.stack.longest_s()
     slow = [(t, p) for p in d.extended.paths.values() for term in p.terms for t in term.time_constants_s]
     if not slow or longest <= 0:
         return ""

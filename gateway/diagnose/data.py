@@ -113,6 +113,10 @@ class Stack:
         """The index of recording ``r``'s own first window (after the work run before it, if any)."""
         return self.bounds[r][0] + (self.lead[r] if self.lead else 0)
 
+    def longest_s(self) -> float:
+        """The longest recording's own length (the work run before one, if any, not counted), in seconds."""
+        return max((b - self.own_start(r) for r, (_, b) in enumerate(self.bounds)), default=0) * self.dt_s
+
     def start_s(self, r: int) -> float:
         """The time of recording ``r``'s own first window."""
         return float(self.time_s[self.own_start(r)])

@@ -295,7 +295,7 @@ def _room_daily(ctx: _Ctx) -> list[Hypothesis]:
         return []  # the room is recorded: its thermometer says more than any guess of its shape
     # ... recorded in some recordings only, the time of day is known in all of them: both are tried (the bench's
     # "room recorded on days": the thermometer's model predicted the fresh day 2.3-4.9 um pooled RMS, the daily
-    # cycle's 0.3-1.0 um, as it had before the thermometer was tried at all)
+    # cycle's 0.3-0.9 um, as it had before the thermometer was tried at all)
     s = Periodic(name="day_sin", period_s=DAY_S, phase="sin", note="time of day (daily room cycle)")
     c = Periodic(name="day_cos", period_s=DAY_S, phase="cos", note="time of day (daily room cycle)")
     static = (FirstOrder(gain=1.0, tau_s=STATIC_TAU_S),)
@@ -511,8 +511,7 @@ SLOW_MODE_PER_DECADE = 6
 def slowest_mode_s(model: ThermalModel, stack: Stack) -> float:
     """The slowest extra mode diagnosis tries: 3x the longest recording, 4x the identification runs at least."""
     lo = _Ctx(stack=stack, model=model, info={}, active=[]).identification_length_s()
-    longest = max((b - a for a, b in stack.bounds), default=0) * stack.dt_s
-    return max(4 * lo, SLOW_MODE_SPAN * longest)
+    return max(4 * lo, SLOW_MODE_SPAN * stack.longest_s())
 
 
 def _slow_mode(ctx: _Ctx) -> list[Hypothesis]:
@@ -576,4 +575,3 @@ def _sensor_drift(ctx: _Ctx) -> list[Hypothesis]:
                      "own temperature, a creeping fixture): not machine physics, so it is removed from the "
                      "fits and kept out of the model."),
         settings={a: [setting] for a in ctx.axes}, artefact=True)]
-
