@@ -219,3 +219,23 @@ def test_estimate_says_when_an_axis_is_missing_from_the_file_or_the_file_is_too_
     assert ("only 5 window(s) (5 min): too short for its figures to say anything (diagnose --validate takes at least "
             "10 measured)") in short.notes
     assert not any(n.startswith("only ") for n in estimate(model, rec(10, ("x", "z"))).notes)
+
+
+def test_estimate_prints_an_implausible_value_as_a_warning(tmp_path, sim_csv_dir, capsys):
+    # the bundled production day with one speed cell of -1e9 rpm (a logger's glitch): said first, as a warning
+    from gateway.cli import main
+
+    lines = (sim_csv_dir / "production-day.csv").read_text().splitlines()
+    head = next(k for k, ln in enumerate(lines) if not ln.startswith("#"))
+    names = lines[head].split(",")
+    row = head + 700
+    cells = lines[row].split(",")
+    cells[names.index("spindle_speed")] = "-1e9"
+    lines[row] = ",".join(cells)
+    glitch = tmp_path / "day.csv"
+    glitch.write_text("\n".join(lines) + "\n")
+    assert main(["estimate", "--profile", "sim-vmc", str(glitch)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[1].startswith("  warning: implausible value: spindle_speed reaches -1e+09 rpm (1 windows, first at "
+                             "window 700)"), out[:3]
+    assert all(not ln.startswith("  warning:") for ln in out[2:])
