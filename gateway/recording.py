@@ -196,6 +196,11 @@ class Recording:
         )
 
 
+def gap_between(prev: Recording, rec: Recording) -> float:
+    """The seconds between ``prev``'s last window and ``rec``'s first beyond one window (0: ``rec`` runs on from it)."""
+    return float(rec.time_s[0] - prev.time_s[-1]) - rec.period_s if len(prev) and len(rec) else 0.0
+
+
 def continued(history: Recording, rec: Recording) -> Recording:
     """``history`` followed by ``rec``: one recording, the windows between them explicit missing rows.
 
@@ -314,7 +319,12 @@ _MAGIC = ((b"PK\x03\x04", "a zip archive (an Excel .xlsx workbook is one)"),
 def number_or_blank(cell: str) -> bool:
     """Whether a cell reads as a number or as a missing value (a gap), as a factor's or displacement's would."""
     cell = cell.strip()
-    return cell in _MISSING_TOKENS or cell.lower() == "nan" or bool(_NUMBER.fullmatch(cell))
+    return _blank(cell) or bool(_NUMBER.fullmatch(cell))
+
+
+def _blank(cell: str) -> bool:
+    """Whether a (stripped) cell is a missing value: a gap."""
+    return cell in _MISSING_TOKENS or cell.lower() == "nan"
 
 
 def _binary_kind(head: bytes) -> str:
@@ -456,7 +466,7 @@ def _read_recording(path: Path, *, factor_columns: Mapping[str, str], displaceme
             cell = cells[i].strip()
             if h in text_cells:
                 text_cells[h].append(cell)
-            if cell in _MISSING_TOKENS or cell.lower() == "nan":
+            if _blank(cell):
                 continue
             if h in non_numeric:
                 continue

@@ -21,7 +21,7 @@ import numpy as np
 from gateway.model.coverage import CoverageCheck, check_coverage
 from gateway.model.model import ThermalModel
 from gateway.prepare import prepare
-from gateway.recording import Recording, continued, format_recording
+from gateway.recording import Recording, continued, format_recording, gap_between
 from gateway.strict_json import nan_to_none
 
 ALIGN_CHOICES = ("start", "none", "offset")
@@ -162,7 +162,7 @@ def estimate(
     check = check_coverage(model.coverage, du, model.factors, model.units) if model.coverage is not None else None
     notes = list(prep.notes) + (check.notes(rec.period_s) if check is not None else extrapolation_notes(model, du))
     if history is not None:
-        gap_s = float(rec.time_s[0] - history.time_s[-1]) - rec.period_s if len(history) and len(rec) else 0.0
+        gap_s = gap_between(history, rec)
         between = (f"; it ends {gap_s / 3600:.3g} h before this one starts, and the hours in the gap note count from "
                    "its start" if gap_s > 0.5 * rec.period_s else "")
         working = _away_from_rest(model, history, -1, "last") if between and gap_policy == "hold" else ""

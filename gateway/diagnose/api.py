@@ -54,7 +54,7 @@ from gateway.model.inputs import Column
 from gateway.model.model import ThermalModel
 from gateway.prepare import prepare
 from gateway.profile import Profile
-from gateway.recording import Recording, continued, runs_on_from, split_part
+from gateway.recording import Recording, continued, gap_between, runs_on_from, split_part
 from gateway.replay import (
     INITIAL_STATES,
     AxisFigures,
@@ -505,7 +505,7 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
     accepted = {t.hypothesis.key for t in physics} | {t.hypothesis.key for t in (ex.named if ex else [])}
     out += [c.line(accepted=c.key in accepted) for c in d.confusions]
     out += partial_columns(st)
-    span_h = max(b - st.own_start(r) for r, (_, b) in enumerate(st.bounds)) * st.dt_s / 3600.0
+    span_h = st.longest_s() / 3600.0
     total_h = st.own_windows * st.dt_s / 3600.0
     k = int(block.max()) + 1 if (block >= 0).any() else 0
     # the time the held-out blocks span: from each recording's burn-in to its last scored window (probe points
@@ -695,7 +695,7 @@ def validate(d: Diagnosis, recordings: Sequence[Recording], *, earlier: Sequence
         initial_state, initial = "rest", "first"
         if hist is not None:
             start = f"carried from {', '.join(label[p.source] for p in before_it)} (ran just before it)"
-            gap_s = float(rec.time_s[0] - hist.time_s[-1]) - rec.period_s if len(hist) and len(rec) else 0.0
+            gap_s = gap_between(hist, rec)
             if gap_s > 0.5 * rec.period_s:  # a --history that ended earlier: the gap policy bridges it
                 start = (f"carried from {label[before_it[0].source]} (--history), which ends {gap_s / 3600:.3g} h "
                          f"before it starts: the gap policy {gap_policy} bridges the hours between")

@@ -184,14 +184,6 @@ class _Ctx:
     def base_terms(self, axis: str, factor: str) -> tuple:
         return self.model.path(axis, factor).terms
 
-    def identification_length_s(self) -> float:
-        """How long the identification runs were (model info), else its slowest time constant."""
-        length = self.model.info.get("longest_experiment_s")
-        if isinstance(length, int | float) and length > 0:
-            return float(length)
-        taus = [t for p in self.model.paths.values() for term in p.terms for t in term.time_constants_s]
-        return max(taus, default=12 * 3600.0)
-
     def taken(self) -> list[str]:
         return list(self.model.input_names)
 
@@ -499,6 +491,15 @@ def _extra_mode(ctx: _Ctx, f: str, taus: Sequence[float]) -> dict[str, list[Sett
     return settings
 
 
+def identification_length_s(model: ThermalModel) -> float:
+    """How long the identification runs were (model info), else its slowest time constant, else 12 h."""
+    length = model.info.get("longest_experiment_s")
+    if isinstance(length, int | float) and length > 0:
+        return float(length)
+    taus = [t for p in model.paths.values() for term in p.terms for t in term.time_constants_s]
+    return max(taus, default=12 * 3600.0)
+
+
 #: the slowest mode tried, in lengths of the longest recording: a mode much slower than every recording is a ramp
 #: on each of them (its gain over its time constant is all they show), and the gain that ramp asks of it is
 #: reached only over runs far longer than any recording (a 480 h mode taken for a room's drift on 24 h days
@@ -510,12 +511,11 @@ SLOW_MODE_PER_DECADE = 6
 
 def slowest_mode_s(model: ThermalModel, stack: Stack) -> float:
     """The slowest extra mode diagnosis tries: 3x the longest recording, 4x the identification runs at least."""
-    lo = _Ctx(stack=stack, model=model, info={}, active=[]).identification_length_s()
-    return max(4 * lo, SLOW_MODE_SPAN * stack.longest_s())
+    return max(4 * identification_length_s(model), SLOW_MODE_SPAN * stack.longest_s())
 
 
 def _slow_mode(ctx: _Ctx) -> list[Hypothesis]:
-    lo = ctx.identification_length_s()
+    lo = identification_length_s(ctx.model)
     taus = log_grid(lo, slowest_mode_s(ctx.model, ctx.stack), SLOW_MODE_PER_DECADE)
     return [Hypothesis(
         key=f"slow_mode:{f}", family="slow_mode",
@@ -527,7 +527,7 @@ def _slow_mode(ctx: _Ctx) -> list[Hypothesis]:
 
 
 def _higher_order(ctx: _Ctx) -> list[Hypothesis]:
-    lo = ctx.identification_length_s()
+    lo = identification_length_s(ctx.model)
     taus = [t for t in log_grid(ctx.dt, lo, 4) if t < lo]
     return [Hypothesis(
         key=f"higher_order:{f}", family="higher_order", title=f"higher order on the path of {f}",

@@ -22,7 +22,7 @@ import numpy as np
 
 from gateway.diagnose.data import Stack, lag, log_grid
 from gateway.diagnose.extend import extend_model
-from gateway.diagnose.hypotheses import Setting
+from gateway.diagnose.hypotheses import Setting, identification_length_s
 from gateway.diagnose.search import Term, Trial, setting_columns
 from gateway.diagnose.select import BURN_IN
 from gateway.errors import IdentificationError
@@ -32,15 +32,6 @@ from gateway.model.model import PathTF, ThermalModel
 
 #: lags per input in the correction bank (log-spaced over the identification's time scales)
 BANK_PER_DECADE = 2.5
-
-
-def identification_length_s(model: ThermalModel) -> float:
-    """How long the identification runs were (model info), else its slowest time constant, else 12 h."""
-    length = model.info.get("longest_experiment_s")
-    if isinstance(length, int | float) and length > 0:
-        return float(length)
-    taus = [t for p in model.paths.values() for term in p.terms for t in term.time_constants_s]
-    return max(taus, default=12 * 3600.0)
 
 
 def bank_taus(stack: Stack, model: ThermalModel) -> list[float]:

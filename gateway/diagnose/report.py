@@ -10,9 +10,8 @@ from typing import Any
 import numpy as np
 
 from gateway.diagnose.api import Diagnosis, Validation
-from gateway.diagnose.hypotheses import Setting
+from gateway.diagnose.hypotheses import Setting, identification_length_s
 from gateway.diagnose.locate import LAGS_S
-from gateway.diagnose.refit import identification_length_s
 from gateway.diagnose.search import Term, Trial
 from gateway.recording import split_file
 from gateway.replay import AxisFigures
