@@ -159,7 +159,9 @@ def estimate(
     du = prep.du[:, skip:]
     measured = prep.y[:, skip:].copy()
     time_s = prep.time_s[skip:]
-    check = check_coverage(model.coverage, du, model.factors, model.units) if model.coverage is not None else None
+    check = None if model.coverage is None else check_coverage(
+        model.coverage, du, model.factors, model.units,
+        columns={c: v[skip:] for c, v in model.coverage.columns_of(run.extras).items()})
     notes = list(prep.notes) + (check.notes(rec.period_s) if check is not None else extrapolation_notes(model, du))
     if history is not None:
         gap_s = gap_between(history, rec)

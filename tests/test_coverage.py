@@ -4,6 +4,7 @@ estimate, the live estimator and diagnosis say when a recording leaves it."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from types import MappingProxyType
 
 import numpy as np
@@ -12,7 +13,16 @@ import pytest
 from gateway.errors import ModelError
 from gateway.live.tracking import DisplacementTracker
 from gateway.model import PathTF, ThermalModel, load_model, model_to_toml
-from gateway.model.coverage import Coverage, Ratio, beyond_coverage, check_coverage, co_varying_pairs, coverage_of
+from gateway.model.coverage import (
+    Coverage,
+    Ratio,
+    beyond_coverage,
+    check_coverage,
+    co_varying_pairs,
+    coverage_of,
+    describe_coverage,
+)
+from gateway.model.inputs import Column
 from gateway.model.terms import FirstOrder
 from gateway.profile.live import Live
 from gateway.recording import Recording
@@ -239,3 +249,79 @@ def test_estimate_prints_an_implausible_value_as_a_warning(tmp_path, sim_csv_dir
     assert out[1].startswith("  warning: implausible value: spindle_speed reaches -1e+09 rpm (1 windows, first at "
                              "window 700)"), out[:3]
     assert all(not ln.startswith("  warning:") for ln in out[2:])
+
+
+# ------------------------------------------------------------------------ recorded columns (a thermometer) ---
+def room_model(room_range: tuple[float, float] | None = (17.5, 22.5)) -> ThermalModel:
+    """small_model with a recorded room thermometer as an input, its covered range ``room_range``."""
+    cov = coverage_of([spindle_run(1000, 0.2), spindle_run(500, 0.4)], FACTORS)
+    if room_range is not None:
+        cov = replace(cov, columns={"room_c": room_range})
+    base = small_model(cov)
+    room = PathTF(axis="z", factor="room", terms=(FirstOrder(gain=1.5, tau_s=3600.0),))
+    return replace(base, inputs=(Column(name="room", column="room_c", unit="degC"),),
+                   paths={**base.paths, ("z", "room"): room})
+
+
+def room_day(room_c: np.ndarray) -> Recording:
+    n = len(room_c)
+    return Recording(source="day.csv", period_s=60.0, time_s=60.0 * np.arange(1, n + 1),
+                     present=np.ones(n, dtype=bool),
+                     factors={"speed": np.zeros(n), "i1_sq": np.full(n, 4.0), "feed": np.zeros(n)},
+                     displacement={"z": np.zeros(n)}, extras={"room_c": np.asarray(room_c, float)})
+
+
+def test_a_thermometer_in_other_units_than_the_model_was_fitted_in_is_said_implausible():
+    # a helper's room thermometer in degF (68 F) on a model fitted in degC raised x's error 0.86 -> 1.24 um without a
+    # word: the model takes the column's change from its first window, so the unit showed only in its level
+    model = room_model()
+    hours = np.arange(600) / 60.0
+    celsius = 20.0 + 2.0 * np.sin(2 * np.pi * hours / 24.0)
+    assert not [n for n in estimate(model, room_day(celsius)).notes if "room_c" in n]
+    notes = estimate(model, room_day(32.0 + 1.8 * celsius)).notes
+    assert notes[0].startswith("implausible value: room_c reaches 7"), notes
+    assert "in other units than the model was fitted on (22.5 covered; degF for degC?)" in notes[0]
+    assert any(n.startswith("outside the identification's coverage: room_c (column) above coverage: up to 7")
+               and "above the highest covered (22.5)" in n for n in notes)
+    # a summer's hall 5.5 K above anything covered (of width 5 K): outside the coverage, not implausible
+    summer = estimate(model, room_day(celsius + 6.0)).notes
+    assert not [n for n in summer if n.startswith("implausible")]
+    assert any(n.startswith("outside the identification's coverage: room_c (column) above coverage: up to 28") and
+               "28, 5.5 above the highest covered (22.5)" in n for n in summer), summer
+    # gaps in the thermometer are no excursion; a model file without the column's range checks nothing
+    gappy = celsius.copy()
+    gappy[100:200] = np.nan
+    assert not [n for n in estimate(model, room_day(gappy)).notes if "coverage" in n or "implausible" in n]
+    assert not [n for n in estimate(room_model(None), room_day(32.0 + 1.8 * celsius)).notes if "room_c" in n]
+
+
+def test_a_column_range_round_trips_and_a_column_no_input_reads_is_named(tmp_path):
+    model = room_model()
+    text = model_to_toml(model)
+    assert "[coverage.column]" in text
+    assert load_model("m.toml", text=text) == model
+    assert any("recorded column room_c: 17.5 .. 22.5" in ln for ln in describe_coverage(model.coverage))
+    bad = text.replace("[coverage.column]\n", "[coverage.column]\nhall_c = [10.0, 30.0]\n")
+    with pytest.raises(ModelError) as err:
+        load_model("m.toml", text=bad)
+    assert ("coverage.column.hall_c: not a recorded column an input of this model reads (columns: room_c)"
+            in str(err.value))
+    upside = text.replace("room_c = [\n    17.5,\n    22.5,\n]", "room_c = [\n    22.5,\n    17.5,\n]")
+    assert upside != text
+    with pytest.raises(ModelError, match=r"coverage\.column\.room_c: expected \[lowest, highest\] value of the column"):
+        load_model("m.toml", text=upside)
+
+
+def test_live_estimator_says_a_thermometer_reads_implausibly():
+    model = room_model()
+    est = DisplacementTracker(model, window_s=60.0, live=Live(), channel_names=["speed", "current", "room_c"])
+
+    def window(index: int, room: float) -> WindowRecord:
+        rec = _record(index, 0.0, 4.0)
+        stats = ChannelStats(count=100, coverage=1.0, mean=room, mean_square=room * room, mean_abs=abs(room),
+                             min=room, max=room, saturated=0, bad=0)
+        return replace(rec, channels=MappingProxyType({**rec.channels, "room_c": stats}))
+
+    assert est.update(window(0, 20.0)).outside_coverage == ""
+    assert est.update(window(1, 68.0)).outside_coverage == (
+        "room_c 68 (above the covered 22.5, implausible: other units or a faulty sensor?)")

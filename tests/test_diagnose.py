@@ -212,6 +212,14 @@ def test_cli_writes_report_figures_and_a_model_estimate_accepts(tmp_path, baseli
     assert main(["estimate", "--profile", str(SIM_PROFILE), "--model", str(out / "base.diagnosed.model.toml"),
                  str(fresh_csv), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)[0]["axes"]["z"]["rms_um"] > 0
+    # the thermometer's covered range is in the model: the same day read in degF is said implausible, first
+    lo, hi = extended.coverage.columns["room_c"]
+    assert 10.0 < lo < hi < 30.0
+    fahrenheit = replace(fresh[1], extras={**fresh[1].extras, "room_c": 32.0 + 1.8 * fresh[1].extras["room_c"]})
+    assert main(["estimate", "--profile", str(SIM_PROFILE), "--model", str(out / "base.diagnosed.model.toml"),
+                 str(write_csv(fahrenheit, tmp_path / "fresh-degF.csv"))]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[1].startswith("  warning: implausible value: room_c reaches 7"), printed[:3]
     assert main(["diagnose", "--profile", str(SIM_PROFILE), "--model", str(model), str(seen_csv), "-o", str(out)]) == 1
     assert "report.md exists: pass --force to overwrite it" in capsys.readouterr().err
 

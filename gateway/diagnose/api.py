@@ -48,9 +48,9 @@ from gateway.diagnose.refit import Reidentified, path_corrections, reidentify
 from gateway.diagnose.search import AxisEvidence, Options, SearchResult, Trial, search, sized
 from gateway.diagnose.select import BURN_IN, blocks_to_decide, make_blocks
 from gateway.errors import RecordingError
-from gateway.model.coverage import check_coverage, coverage_of
+from gateway.model.coverage import check_coverage, column_ranges, coverage_of
 from gateway.model.envelope import envelope_of
-from gateway.model.inputs import Column
+from gateway.model.inputs import recorded_columns
 from gateway.model.model import ThermalModel
 from gateway.prepare import prepare
 from gateway.profile import Profile
@@ -345,19 +345,23 @@ def _supported_region(model: ThermalModel, recordings: Sequence[Recording], *, r
     identification's and theirs (the live gateway holds offsets beyond it, and a production day at 3x the
     experiments' speed is now data, not an extrapolation). A re-identified model's coverage is the region all
     of them span; a model with terms on frozen paths keeps the identification's coverage (its paths saw only
-    the experiments).
+    the experiments). Either way the coverage holds the range of every recorded column an input reads (a room
+    thermometer), over the recordings that have it: ``estimate`` and ``run`` say when a column leaves it (a
+    thermometer read in degF by a model fitted in degC).
     """
     # a recording without a column an input of the model reads (a room thermometer only on the production days)
     # is none this model can run on
-    columns = [i.column for i in model.inputs if isinstance(i, Column)]
+    columns = recorded_columns(model.inputs)
     recordings = [r for r in recordings if all(c in r.extras and np.isfinite(r.extras[c]).any() for c in columns)]
     preps = [prepare(r, factors=model.factors, axes=model.axes, reference=model.reference, gap_policy=gap_policy,
                      inputs=model.inputs) for r in recordings]
     source = f"diagnosis: {len(recordings)} recordings"
     env = envelope_of(model, ((p.du, p.y) for p in preps), window_s=recordings[0].period_s, source=source)
     changes: dict[str, object] = {"envelope": model.envelope.merged(env) if model.envelope is not None else env}
-    if reidentified:
-        changes["coverage"] = coverage_of((p.du for p in preps), model.factors, source=source)
+    coverage = coverage_of((p.du for p in preps), model.factors, source=source) if reidentified else model.coverage
+    if coverage is not None and columns:
+        coverage = replace(coverage, columns=column_ranges({c: [r.extras[c] for r in recordings] for c in columns}))
+    changes["coverage"] = coverage
     return replace(model, **changes)
 
 

@@ -309,7 +309,8 @@ def build_stack(model: ThermalModel, recordings: Sequence[Recording], *, gap_pol
         sampled.append(p.sparse)
         if model.coverage is not None:  # where the model extrapolates, a residual is not missing physics alone
             notes += [f"{call}: {n}" for n in
-                      check_coverage(model.coverage, p.du, model.factors, model.units).notes(dt)]
+                      check_coverage(model.coverage, p.du, model.factors, model.units,
+                                     columns=model.coverage.columns_of(rec.extras)).notes(dt)]
         names.append(p.name)
         srcs.append(rec.source)
         prints.append(rec.fingerprint(model.factors))

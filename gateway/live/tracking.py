@@ -47,7 +47,7 @@ from gateway.adaptive.filter import Z95
 from gateway.errors import ModelError
 from gateway.model import ModelStepper, ThermalModel
 from gateway.model.coverage import check_coverage
-from gateway.model.inputs import Column, InputStepper, Product, initial_values
+from gateway.model.inputs import Column, InputStepper, Product, initial_values, recorded_columns
 from gateway.profile.live import Live
 from gateway.windows import WindowRecord
 
@@ -136,7 +136,7 @@ class FactorHistory:
         self.window_s = float(window_s)
         self.live = live
         self.reference = model.reference_vector()
-        self.columns = tuple(dict.fromkeys(d.column for d in model.inputs if isinstance(d, Column)))
+        self.columns = recorded_columns(model.inputs)
         self._stepper: InputStepper | None = None
         self._start: np.ndarray | None = None  # the derived inputs' values in the initial equilibrium
         self.last_index: int | None = None
@@ -331,13 +331,20 @@ class DisplacementTracker:
     def _rebuilt(self, first_index: int, du: np.ndarray) -> None:
         """The rebuild replayed windows ``first_index``.. with inputs ``du``; a subclass layers on it."""
 
-    def outside_coverage(self, du: np.ndarray) -> str:
-        """Why input deviations ``du`` (one window) lie outside the model's coverage ("" inside)."""
+    def outside_coverage(self, du: np.ndarray, record: WindowRecord | None = None) -> str:
+        """Why input deviations ``du`` (one window) and ``record``'s columns lie outside the coverage ("" inside).
+
+        An implausible column value (a thermometer in other units) says so.
+        """
         cov = self.model.coverage
         if cov is None:
             return ""
-        check = check_coverage(cov, np.asarray(du, dtype=float)[: len(self.model.factors), None], self.model.factors)
-        return "; ".join(f"{e.what} {e.value:.4g} ({e.side} the covered {e.bound:.4g})" for e in check.excursions)
+        columns = {c: np.array([record.channel_mean(c)]) for c in self.history.columns} if record is not None else None
+        check = check_coverage(cov, np.asarray(du, dtype=float)[: len(self.model.factors), None], self.model.factors,
+                               columns=columns)
+        return "; ".join(f"{e.what} {e.value:.4g} ({e.side} the covered {e.bound:.4g}"
+                         f"{', implausible: other units or a faulty sensor?' if e.implausible else ''})"
+                         for e in check.excursions)
 
     def _axes_map(self, y: np.ndarray) -> Mapping[str, float]:
         return MappingProxyType({a: float(v) for a, v in zip(self.model.axes, y, strict=True)})
@@ -362,7 +369,7 @@ class DisplacementTracker:
                              next_um=self._predict(cols[:, -1]),
                              factors=MappingProxyType(dict(record.factors)), usable=not reason, reason=reason,
                              filled=filled, first_live=self.live_windows == 0, notes=record.notes,
-                             outside_coverage="" if reason else self.outside_coverage(cols[:, -1]),
+                             outside_coverage="" if reason else self.outside_coverage(cols[:, -1], record),
                              inputs=inputs,
                              held_factors=self.history.last_good_factors if inputs == "held" else MappingProxyType({}))
         self.live_windows += 1

@@ -15,6 +15,13 @@ a ratio beyond its range by more than the factor ``1 + margin`` (ratios that sta
 of its span; :func:`check_coverage` says which factor or ratio, how far and for how long, and marks every
 such window. There the estimate extrapolates from what the identification saw.
 
+A model with an input that reads a recorded column (a room thermometer, ``room_c``) records the range of that
+column's values too (absolute, not deviations: the model takes the column's change from its first window, so a
+thermometer reading in other units, degF for degC, or moved to another place shows in its level first). A
+recording leaves the region where the column goes beyond its range by more than ``margin`` of it, and reads an
+implausible value where it lies :data:`IMPLAUSIBLE_SPANS` widths beyond (the width at least
+:data:`COLUMN_WIDTH_SHARE` of the column's size: a hall held to +/- 0.5 K still has summers).
+
 In the model file::
 
     [coverage]
@@ -25,6 +32,8 @@ In the model file::
     spindle_speed = [0.0, 1000.0]
     [coverage.ratio]         # "of/per" = [lowest, highest] ratio of the deviations
     "spindle_i1_sq/spindle_speed" = [0.19, 1.4]
+    [coverage.column]        # a recorded column a model input reads = [lowest, highest] value
+    room_c = [17.6, 23.1]
 """
 
 from __future__ import annotations
@@ -72,11 +81,18 @@ class Coverage:
     source: str = ""
     on_share: float = ON_SHARE
     margin: float = MARGIN
+    #: recorded columns the model's inputs read: [lowest, highest] value (not deviation) in the data fitted on
+    columns: Mapping[str, tuple[float, float]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "ranges", MappingProxyType({k: (float(a), float(b))
-                                                             for k, (a, b) in self.ranges.items()}))
+        for name in ("ranges", "columns"):
+            object.__setattr__(self, name, MappingProxyType({k: (float(a), float(b))
+                                                             for k, (a, b) in getattr(self, name).items()}))
         object.__setattr__(self, "ratios", tuple(self.ratios))
+
+    def columns_of(self, extras: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The columns of a recording's ``extras`` that this coverage ranges (for :func:`check_coverage`)."""
+        return {c: extras[c] for c in self.columns if c in extras}
 
 
 #: a factor beyond its covered range by more than this many times the range's width is implausible (production
@@ -84,14 +100,18 @@ class Coverage:
 IMPLAUSIBLE_SPANS = 5.0
 #: how a note on an implausible value starts (``cncgw estimate`` prints it as a warning)
 IMPLAUSIBLE = "implausible value:"
+#: a recorded column's covered width, for judging how far beyond it a value lies, is at least this share of the
+#: column's size (its largest |value| covered): a room held to 20 +/- 0.5 C that reads 27 C one summer is outside
+#: the coverage, not implausible; one that reads 68 (degF) is
+COLUMN_WIDTH_SHARE = 0.25
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
 class Excursion:
     """One way a recording left the covered region: a factor's range or a ratio's, how far, how long."""
 
-    what: str  # the factor, or "of per per"
-    kind: str  # "range" or "ratio"
+    what: str  # the factor, "of per per", or the recorded column
+    kind: str  # "range", "ratio" or "column"
     side: str  # "above" or "below"
     value: float  # the most extreme value reached
     bound: float  # the covered bound it passed (highest or lowest)
@@ -99,24 +119,29 @@ class Excursion:
     longest: int  # windows in the longest unbroken stretch outside
     first: int  # index of the first window outside
     unit: str = ""
-    #: the width of the covered range (a factor's range; 0 for a ratio): how far beyond it is judged against it
+    #: the width of the covered range (a factor's range; a column's, at least COLUMN_WIDTH_SHARE of its size; 0 for
+    #: a ratio): how far beyond it is judged against it
     span: float = 0.0
 
     @property
     def implausible(self) -> bool:
         """Beyond the covered range by over :data:`IMPLAUSIBLE_SPANS` times its width: a glitch or a sentinel."""
-        return self.kind == "range" and self.span > 0 and abs(self.value - self.bound) > IMPLAUSIBLE_SPANS * self.span
+        return (self.kind in ("range", "column") and self.span > 0
+                and abs(self.value - self.bound) > IMPLAUSIBLE_SPANS * self.span)
 
     def how_far(self) -> str:
         """The extreme value against the covered bound, as a multiple when that means something."""
         u = f" {self.unit}" if self.unit else ""
+        if self.kind == "column":  # a level (a temperature): its difference says how far, a ratio would not
+            return (f"{self.value:.4g}{u}, {abs(self.value - self.bound):.3g}{u} {self.side} the "
+                    f"{_word(self.side)} covered ({self.bound:.4g}{u})")
         if self.bound != 0 and self.value / self.bound > 0:
             return (f"{self.value:.4g}{u}, {self.value / self.bound:.2g}x the {_word(self.side)} covered "
                     f"({self.bound:.4g}{u})")
         return f"{self.value:.4g}{u}, {self.side} the covered {_word(self.side)} {self.bound:.4g}{u}"
 
     def describe(self, window_s: float) -> str:
-        name = f"{self.what} ({self.kind})" if self.kind == "ratio" else self.what
+        name = f"{self.what} ({self.kind})" if self.kind != "range" else self.what
         reach = "up to" if self.side == "above" else "down to"
         return (f"{name} {self.side} coverage: {reach} {self.how_far()}; {self.windows} windows "
                 f"({duration_text(self.windows * window_s)}), longest stretch "
@@ -126,6 +151,15 @@ class Excursion:
 
 def _word(side: str) -> str:
     return "highest" if side == "above" else "lowest"
+
+
+def _suspects(e: Excursion) -> str:
+    """What an implausible value most likely is."""
+    if e.kind == "column":
+        return (f"the column in other units than the model was fitted on ({e.bound:.4g} covered; degF for degC?), "
+                "a sensor moved or faulty, or a sentinel value (leave such a cell empty to make it a gap)")
+    return ("a glitch or a sentinel value (-9999, 32767; leave such a cell empty to make it a gap), or a machine run "
+            "far beyond anything identified")
 
 
 def duration_text(s: float) -> str:
@@ -152,9 +186,8 @@ class CoverageCheck:
         """One line per excursion, for a report; an implausible one first, said as such."""
         odd = [f"{IMPLAUSIBLE} {e.what} reaches {e.value:.4g}{f' {e.unit}' if e.unit else ''} ({e.windows} windows, "
                f"first at window {e.first + 1}), {abs(e.value - e.bound) / e.span:.2g}x the width of the covered "
-               "range beyond it: a glitch or a sentinel value (-9999, 32767; leave such a cell empty to make it a "
-               "gap), or a machine run far beyond anything identified? either way the estimate from there on means "
-               "little" for e in self.excursions if e.implausible]
+               f"range beyond it: {_suspects(e)}? either way the estimate from there on means little"
+               for e in self.excursions if e.implausible]
         return odd + [f"outside the identification's coverage: {e.describe(window_s)}: the estimate extrapolates "
                       "there" for e in self.excursions]
 
@@ -218,8 +251,23 @@ def merged(a: Coverage, b: Coverage) -> Coverage:
     theirs = {r.key: r for r in b.ratios}
     ratios = tuple(Ratio(of=r.of, per=r.per, low=min(r.low, theirs[r.key].low), high=max(r.high, theirs[r.key].high))
                    for r in a.ratios if r.key in theirs)
+    columns = dict(a.columns)
+    for c, (lo, hi) in b.columns.items():
+        old = columns.get(c)
+        columns[c] = (lo, hi) if old is None else (min(old[0], lo), max(old[1], hi))
     return Coverage(ranges=ranges, ratios=ratios, source=f"{a.source}; {b.source}", on_share=a.on_share,
-                    margin=a.margin)
+                    margin=a.margin, columns=columns)
+
+
+def column_ranges(values: Mapping[str, Iterable[np.ndarray]]) -> dict[str, tuple[float, float]]:
+    """[lowest, highest] finite value of each recorded column over its arrays (a column with none is left out)."""
+    out = {}
+    for c, arrays in values.items():
+        finite = [a[np.isfinite(a)] for a in (np.asarray(x, dtype=float) for x in arrays)]
+        finite = [a for a in finite if a.size]
+        if finite:
+            out[c] = (float(min(a.min() for a in finite)), float(max(a.max() for a in finite)))
+    return out
 
 
 # ------------------------------------------------------------------------------------------------ checking --
@@ -235,8 +283,13 @@ def _runs(mask: np.ndarray) -> tuple[int, int]:
 
 
 def check_coverage(cov: Coverage, du: np.ndarray, factors: Sequence[str],
-                   units: Mapping[str, str] | None = None) -> CoverageCheck:
-    """Where the deviations ``du`` (factors first, N windows) leave ``cov``; NaN windows count as inside."""
+                   units: Mapping[str, str] | None = None,
+                   columns: Mapping[str, np.ndarray] | None = None) -> CoverageCheck:
+    """Where the deviations ``du`` (factors first, N windows) leave ``cov``; NaN windows count as inside.
+
+    ``columns``: the recording's values (N each) of the recorded columns ``cov`` holds ranges of; a column not
+    given is not checked.
+    """
     du = np.asarray(du, dtype=float)
     n = du.shape[1] if du.ndim == 2 else 0
     units = units or {}
@@ -278,6 +331,17 @@ def check_coverage(cov: Coverage, du: np.ndarray, factors: Sequence[str],
         with np.errstate(invalid="ignore"):
             add(on & (ratio > above), ratio, f"{r.of} per {r.per}", "ratio", "above", r.high, unit)
             add(on & (ratio < below), ratio, f"{r.of} per {r.per}", "ratio", "below", r.low, unit)
+    for c, (lo, hi) in cov.columns.items():
+        if columns is None or c not in columns or n == 0:
+            continue
+        x = np.asarray(columns[c], dtype=float)
+        if x.shape != (n,):
+            raise ValueError(f"column {c}: {x.shape[0] if x.ndim == 1 else x.shape} values for {n} windows")
+        x = np.where(np.isfinite(x), x, (lo + hi) / 2)  # a gap is no excursion
+        tol = cov.margin * (hi - lo) if hi > lo else 1e-9 * (1.0 + max(abs(lo), abs(hi)))
+        width = max(hi - lo, COLUMN_WIDTH_SHARE * max(abs(lo), abs(hi)))
+        add(x > hi + tol, x, c, "column", "above", hi, units.get(c, ""), width)
+        add(x < lo - tol, x, c, "column", "below", lo, units.get(c, ""), width)
     outside = np.zeros(n, dtype=bool)
     for m in masks:
         outside |= m
@@ -352,6 +416,8 @@ def coverage_to_toml(cov: Coverage) -> dict[str, Any]:
     out["range"] = {f: [float(lo), float(hi)] for f, (lo, hi) in cov.ranges.items()}
     if cov.ratios:
         out["ratio"] = {r.key: [float(r.low), float(r.high)] for r in cov.ratios}
+    if cov.columns:
+        out["column"] = {c: [float(lo), float(hi)] for c, (lo, hi) in cov.columns.items()}
     return out
 
 
@@ -365,8 +431,8 @@ def _pair(t: Table, key: str, expected: str) -> tuple[float, float] | None:
     return pair[0], pair[1]
 
 
-def parse_coverage(t: Table, factors: Sequence[str]) -> Coverage | None:
-    """Read ``[coverage]``; ``None`` after reporting a problem."""
+def parse_coverage(t: Table, factors: Sequence[str], columns: Sequence[str] = ()) -> Coverage | None:
+    """Read ``[coverage]``; ``None`` after reporting a problem. ``columns``: the recorded columns the model reads."""
     source = t.str("source", default="")
     on_share = t.float("on_share", default=ON_SHARE, min=0.0, max=1.0, min_exclusive=True,
                        expected="the share of its highest deviation a ratio's denominator must reach, in (0, 1]")
@@ -408,10 +474,28 @@ def parse_coverage(t: Table, factors: Sequence[str]) -> Coverage | None:
             else:
                 ratios.append(Ratio(of=parts[0], per=parts[1], low=pair[0], high=pair[1]))
         qt.done()
+    covered: dict[str, tuple[float, float]] = {}
+    ct = t.table("column", expected="a table of recorded column -> [lowest, highest] value")
+    if ct is not None:
+        for c in ct:
+            if c not in columns:
+                ct.problem(c, "not a recorded column an input of this model reads (" + (
+                    f"columns: {', '.join(columns)}" if columns else "it reads none") + ")")
+                ct.raw(c)
+                ok = False
+                continue
+            pair = _pair(ct, c, "[lowest, highest] value of the column in the data the model was fitted on, lowest "
+                                "<= highest")
+            if pair is None:
+                ok = False
+            else:
+                covered[c] = pair
+        ct.done()
     t.done()
     if not ok:
         return None
-    return Coverage(ranges=ranges, ratios=tuple(ratios), source=source or "", on_share=on_share, margin=margin)
+    return Coverage(ranges=ranges, ratios=tuple(ratios), source=source or "", on_share=on_share, margin=margin,
+                    columns=covered)
 
 
 def describe_coverage(cov: Coverage | None, units: Mapping[str, str] | None = None) -> list[str]:
@@ -427,8 +511,10 @@ def describe_coverage(cov: Coverage | None, units: Mapping[str, str] | None = No
     for r in cov.ratios:
         lines.append(f"  {r.of} per {r.per}: {r.low:.4g} .. {r.high:.4g} (where {r.per} >= "
                      f"{cov.on_share:g} of its highest)")
+    for c, (lo, hi) in cov.columns.items():
+        lines.append(f"  recorded column {c}: {lo:.4g} .. {hi:.4g} (its values)")
     return lines
 
 
-__all__ = ["Coverage", "CoverageCheck", "Excursion", "Ratio", "check_coverage", "co_varying_pairs", "coverage_of",
-           "coverage_to_toml", "describe_coverage", "merged", "parse_coverage"]
+__all__ = ["Coverage", "CoverageCheck", "Excursion", "Ratio", "check_coverage", "co_varying_pairs", "column_ranges",
+           "coverage_of", "coverage_to_toml", "describe_coverage", "merged", "parse_coverage"]

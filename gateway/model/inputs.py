@@ -156,6 +156,11 @@ def sources(inp: DerivedInput) -> tuple[str, ...]:
     return ()
 
 
+def recorded_columns(inputs: Sequence[DerivedInput]) -> tuple[str, ...]:
+    """The recorded columns (not factors) the inputs read, each once, in declaration order."""
+    return tuple(dict.fromkeys(d.column for d in inputs if isinstance(d, Column)))
+
+
 def check_order(inputs: Sequence[DerivedInput], factors: Sequence[str]) -> list[str]:
     """Problems with names and references: each ``of`` must be a factor or an input declared before."""
     problems = []

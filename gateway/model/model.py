@@ -25,7 +25,7 @@ from gateway.model.correlation import GainCorrelation, correlation_to_toml, pars
 from gateway.model.coverage import Coverage, coverage_to_toml, parse_coverage
 from gateway.model.discrete import Section
 from gateway.model.envelope import Envelope, envelope_to_toml, parse_envelope
-from gateway.model.inputs import DerivedInput, check_order, input_to_toml, parse_inputs
+from gateway.model.inputs import DerivedInput, check_order, input_to_toml, parse_inputs, recorded_columns
 from gateway.model.terms import TERM_KINDS, FirstOrder, SecondOrder, Term
 from gateway.tomlcheck import Table, TomlDoc
 
@@ -467,7 +467,7 @@ def load_model(path: str | Path, *, text: str | None = None) -> ThermalModel:
     env_t = root.table("envelope")
     envelope = parse_envelope(env_t, axes) if env_t is not None else None
     cov_t = root.table("coverage")
-    coverage = parse_coverage(cov_t, factors) if cov_t is not None else None
+    coverage = parse_coverage(cov_t, factors, recorded_columns(inputs)) if cov_t is not None else None
     info_t = root.table("info")
     info = _parse_info(info_t, factors) if info_t is not None else {}
     corr_t = root.table("gain_correlation", expected="a table of [gain_correlation.<axis>] tables")
