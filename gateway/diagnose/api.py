@@ -20,7 +20,7 @@ from threadpoolctl import threadpool_limits
 
 from gateway import __version__
 from gateway.diagnose.adequacy import MAX_ERROR_SHARE, Adequacy, assess
-from gateway.diagnose.compare import Comparison, compare
+from gateway.diagnose.compare import WITH_TERMS, Comparison, compare
 from gateway.diagnose.confusable import Confusion, confusions
 from gateway.diagnose.data import Stack, build_stack, identified_on, recording_labels
 from gateway.diagnose.explain import Explanation, explain, held_corrections
@@ -174,9 +174,9 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
         # better: the work it chooses is run again while the choice changes, and the pass whose written model
         # predicts the held-out blocks best is kept (bench/diagnose.py --cut-days 10: see start_histories)
         for _ in range(HISTORY_PASSES - 1):
-            if not now.histories or now.reid is None:
+            if not now.histories or now.chooser is None:
                 break
-            again = start_histories(model, recordings, warm, gap_policy=gap_policy, choose_with=now.reid.model)
+            again = start_histories(model, recordings, warm, gap_policy=gap_policy, choose_with=now.chooser.model)
             if _choices(again) == _choices(now.histories):
                 break
             if progress:
@@ -188,7 +188,11 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
         stack, findings, results, comparison = best.stack, best.findings, best.results, best.comparison
         adequacy, block, hyps, confused = best.adequacy, best.block, best.hypotheses, best.confused
         reid, explanation, missing = best.reid, best.explanation, best.missing
-    result = {"reidentified": results.get("refit"), "explained": explanation.result if explanation else None
+    refit = results.get("refit")
+    if refit is not None and WITH_TERMS in comparison.candidates:  # its terms are not the model written
+        refit = SearchResult(trials=refit.trials, accepted=[t for t in refit.accepted if t.hypothesis.artefact],
+                             sse_rounds=refit.sse_rounds, held_of=refit.held_of)
+    result = {"reidentified": refit, "explained": explanation.result if explanation else None
               }.get(comparison.chosen) or results["frozen"]
     on = [(t, f"{t.hypothesis.key} on {', '.join(t.axes)}") for t in result.accepted]
     record = {"cncgw_version": __version__, "recordings": list(stack.labels), "written": comparison.chosen,
@@ -245,6 +249,10 @@ class _Pass:
     comparison: Comparison
     explanation: Explanation | None
     missing: list[str]
+    #: the re-identified model with the terms the refit search took (``reid`` when it is the one written): what
+    #: chooses the work before a warm recording again (the fullest account of the data; the one written may be
+    #: the model without terms, which predicts the held-out blocks as well but not a warm start's history)
+    chooser: Reidentified | None = None
 
 
 def _choices(histories: Mapping[int, tuple[Recording, str]]) -> dict[int, str]:
@@ -321,12 +329,19 @@ def _one_pass(model: ThermalModel, recordings: Sequence[Recording], histories: M
 
     frozen = extend_model(model, {a: [x for x in ts if writable(x.trial)]
                                   for a, ts in results["frozen"].terms.items()})
-    reid = None
+    reid = alone = None
+    names = ""
     if refit:
-        reid = reidentify(stack, model, [t for t in results["refit"].accepted if writable(t)],
-                          artefacts=artefacts, progress=progress)
+        taken = [t for t in results["refit"].accepted if writable(t)]
+        reid = reidentify(stack, model, taken, artefacts=artefacts, progress=progress)
+        if any(reid.terms.values()):  # the terms are written only where they beat the paths re-identified alone
+            alone = reidentify(stack, model, [], artefacts=artefacts, progress=progress)
+            names = "; ".join(t.hypothesis.title for t in taken if not t.hypothesis.artefact)
     comparison = compare(stack, model, block, [t for t in results["frozen"].accepted if writable(t)], frozen,
-                         reid, artefacts=artefacts, options=options)
+                         reid, artefacts=artefacts, options=options, alone=alone, reid_names=names)
+    chooser = reid
+    if WITH_TERMS in comparison.candidates:  # more data alone predicts as well: the model without terms is written
+        reid = alone
     explanation = None
     if reid is not None and comparison.chosen == "reidentified" and not any(reid.terms.values()):
         # more data alone won: which physics reproduces what the re-identified paths changed?
@@ -334,7 +349,7 @@ def _one_pass(model: ThermalModel, recordings: Sequence[Recording], histories: M
                               artefacts=artefacts, options=sub, writable=writable, progress=progress)
     return _Pass(histories=histories, stack=stack, findings=findings, adequacy=adequacy,
                  block=block, hypotheses=hyps, confused=confused, results=results, reid=reid, comparison=comparison,
-                 explanation=explanation, missing=missing)
+                 explanation=explanation, missing=missing, chooser=chooser)
 
 
 def _supported_region(model: ThermalModel, recordings: Sequence[Recording], *, reidentified: bool,

@@ -5,7 +5,11 @@
 - ``terms``: the accepted hypotheses as terms on top of the frozen identified model.
 - ``reidentified``: every path identified again on all recordings given (identification experiments and
   production alike), with the accepted hypotheses' terms when there are any; without them it is "more
-  data alone".
+  data alone". When there are terms, the model re-identified without them is scored beside it: the terms
+  are written only when they predict the held-out blocks significantly better than more data alone does
+  (a term that passed beside refitted paths may stand in for what re-identifying the paths does anyway: a
+  72 h mode on a feed's heat where a chiller acted, which made a fresh day worse). The one not written is
+  kept as ``reidentified_terms`` (with terms) or stays ``reidentified_alone`` (without), for the report.
 
 Each is scored the same way: per held-out block, its gains are refitted on the other blocks at the time
 constants and settings chosen on all data (the re-identified model is identified again without the block,
@@ -35,7 +39,12 @@ from gateway.diagnose.select import BURN_IN, held_out, one_sided_p
 from gateway.model.model import ThermalModel
 from gateway.replay import AxisFigures
 
-KEYS = ("identified", "terms", "reidentified")
+#: the model re-identified without the accepted terms, scored beside the one with them (see the module docstring)
+ALONE = "reidentified_alone"
+#: the model re-identified with the accepted terms, when the one without them is written
+WITH_TERMS = "reidentified_terms"
+#: the order in which passing candidates are preferred: the fewest changes first
+ORDER = ("identified", "terms", ALONE, "reidentified")
 #: with this many recordings to judge on, each is left out whole
 MIN_RECORDINGS_OUT = 3
 
@@ -79,33 +88,38 @@ class Comparison:
 
 def compare(stack: Stack, model: ThermalModel, block: np.ndarray, accepted: Sequence[Trial], extended: ThermalModel,
             reid: Reidentified | None, *, artefacts: Mapping[str, Sequence[np.ndarray]],
-            options: Options) -> Comparison:
+            options: Options, alone: Reidentified | None = None, reid_names: str = "") -> Comparison:
     """Score the identified model, the terms on it and the re-identified model on the same held-out data.
 
     ``accepted``: what the frozen search accepted and may be written (``extended`` is the model with them).
+    ``alone``: when ``reid`` has terms (``reid_names`` in words), the model re-identified without them. When it
+    is the one written, it is ``candidates["reidentified"]`` and ``reid`` becomes ``candidates[WITH_TERMS]``.
     """
     physics = [t for t in accepted if not t.hypothesis.artefact]
     folds, score, scheme = _scheme(stack, model, block, options)
     cands: dict[str, Candidate] = {}
-    specs: list[tuple[str, str, ThermalModel]] = [("identified", "the identified model as it is", model)]
+    specs: list[tuple[str, str, ThermalModel, Reidentified | None]] = [
+        ("identified", "the identified model as it is", model, None)]
     if physics:
-        specs.append(("terms", "the accepted terms on the frozen identified model", extended))
+        specs.append(("terms", "the accepted terms on the frozen identified model", extended, None))
     if reid is not None:
         with_terms = any(reid.terms.get(a) for a in stack.axes)
-        specs.append(("reidentified", "re-identified on all recordings" + (" with the accepted terms" if with_terms
-                                                                           else " (more data alone, no new term)"),
-                      reid.model))
-    # the re-identified model is identified again without each fold: its time constants were chosen on all data
-    nested = held_out_reidentified(stack, model, reid, folds, block, artefacts=artefacts) if reid is not None else {}
-    for key, title, m in specs:
+        title = (f" with {reid_names}" if reid_names else " with the accepted terms") if with_terms else \
+            " (more data alone, no new term)"
+        specs.append(("reidentified", "re-identified on all recordings" + title, reid.model, reid))
+    if alone is not None:
+        specs.append((ALONE, "re-identified on all recordings (more data alone, no new term)", alone.model, alone))
+    for key, title, m, r in specs:
         extra: dict[str, list[np.ndarray]] = {}
         if key == "terms":
             for a in stack.axes:
                 extra[a] = [c for t in physics for e in [t.evidence.get(a)]
                             if e is not None and e.included and e.setting is not None
                             for c in setting_columns(stack, e.setting)[0]]
+        # a re-identified model is identified again without each fold: its time constants were chosen on all data
+        nested = held_out_reidentified(stack, model, r, folds, block, artefacts=artefacts) if r is not None else None
         cands[key] = _candidate(stack, block, folds, score, key=key, title=title, model=m, extra=extra,
-                                artefacts=artefacts, nested=nested if key == "reidentified" else None, reid=reid)
+                                artefacts=artefacts, nested=nested, reid=r)
     base = cands["identified"]
     for c in cands.values():
         _figures(stack, base, c)
@@ -113,13 +127,26 @@ def compare(stack: Stack, model: ThermalModel, block: np.ndarray, accepted: Sequ
     chosen = "identified"
     passing = [c for c in cands.values() if c.passes and c is not base]
     if passing:
-        # the fewest changes first: the frozen model with terms, unless re-identifying is significantly better
-        order = sorted(passing, key=lambda c: KEYS.index(c.key))
+        # the fewest changes first: the frozen model with terms, unless re-identifying is significantly better;
+        # terms beside re-identified paths only when significantly better than the paths re-identified alone
+        order = sorted(passing, key=lambda c: ORDER.index(c.key))
         best = order[0]
         for c in order[1:]:
             if c.sse < best.sse and one_sided_p(_informative(best.block_sse, c.block_sse)) < options.alpha:
                 best = c
         chosen = best.key
+    if alone is not None:
+        with_c, alone_c = cands["reidentified"], cands[ALONE]
+        if chosen != "reidentified":
+            p = one_sided_p(_informative(alone_c.block_sse, with_c.block_sse))
+            than = ("lower held-out error than the model re-identified without them, but not significantly over the "
+                    "blocks" if with_c.sse < alone_c.sse else "no lower held-out error than the model re-identified "
+                    "without them")
+            with_c.verdict += f"; {than} (p = {p:.2g}, {options.alpha:g} needed): not written"
+        if chosen == ALONE:  # the written re-identification is the one without terms: "reidentified" downstream
+            chosen = "reidentified"
+            with_c.key, alone_c.key = WITH_TERMS, "reidentified"
+            cands = {c.key: c for c in cands.values()}
     for c in cands.values():
         if c.key == chosen and c is not base:
             c.verdict += "; written"
