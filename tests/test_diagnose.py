@@ -251,6 +251,37 @@ def test_real_spindle_recording_runs_and_says_what_it_cannot_conclude(tmp_path, 
     # a drift after 28 h is there (borderline on 16 blocks of one warm-up): accepted, or named as closest
     assert doc["accepted"] or doc["artefacts"] or "closest candidate" in text
     assert doc["held_out"]["after"]["z"]["rms_um"] <= doc["held_out"]["before"]["z"]["rms_um"]
+    assert_closest_ranked_by_evidence(doc)
+
+
+def assert_closest_ranked_by_evidence(doc: dict) -> None:
+    """"closest" only for one that beat the model in more held-out blocks than not, and among those Holm leaves
+    tied, the one its own test ranks first (not the first of the list, as with 15 thermometers at Holm p = 1)."""
+    closest = [c.removeprefix("closest candidate: ") for c in doc["conclusions"] if c.startswith("closest candidate")]
+    if closest:
+        track = {"reidentified": "refit", "explained": "held"}.get(doc["written"], "frozen")  # the search written
+        same = [t for t in doc["trials"] if t["round"] == 1 and t["track"] == track
+                and closest[0].startswith(t["title"] + ": ")]
+        chosen = [t for t in same if t["p"] < 0.5 and all(
+            t["p"] <= o["p"] for o in doc["trials"] if o["track"] == t["track"] and o["round"] == 1
+            and o["p_holm"] == t["p_holm"] and not o["artefact"] and o["verdict"] == t["verdict"])]
+        assert chosen, (closest, same)
+
+
+def test_real_spindle_with_the_readme_commands_names_no_thermometer_closest_for_its_place_in_the_list(
+        tmp_path, shared_data, capsys):
+    # identified and diagnosed on all 78 h, as the README's commands do: every trial at Holm p = 1, and the first
+    # thermometer of the list (T1, its own p 0.47) was "closest" over others its own test ranks higher
+    csv = shared_data / "sjtu-spindle-thermal" / "thermal_expansion_error_original.csv"
+    profile = ROOT / "bench" / "profiles" / "sjtu-spindle.toml"
+    model = tmp_path / "sjtu.model.toml"
+    assert main(["identify", "--profile", str(profile), "--period-s", "60", str(csv), "-o", str(model)]) == 0
+    capsys.readouterr()
+    assert main(["diagnose", "--profile", str(profile), "--model", str(model), "--period-s", "60", str(csv),
+                 "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert not doc["accepted"]
+    assert_closest_ranked_by_evidence(doc)
 
 
 @pytest.mark.plumbing

@@ -538,11 +538,13 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
     block_h = held_s / max(k, 1) / 3600.0
     if not physics:
         tried = [t for t in d.result.trials if t.round == 1 and not t.hypothesis.artefact]
-        # ranked by evidence; "closest" only for one that predicted the held-out blocks better than nothing
+        # ranked by evidence; "closest" only for one that predicted the held-out blocks better than nothing,
+        # pooled and in more blocks than not (its own signed-rank p under one half)
         better = [t for t in tried if sum(e.sse_after for e in t.evidence.values())
-                  < sum(e.sse_before for e in t.evidence.values())]
-        # ... first those that lacked only significance (relevant on an axis): they are what more data decides
-        best = min(better, key=lambda t: (not _relevant(d, t), t.p_holm, -t.score), default=None)
+                  < sum(e.sse_before for e in t.evidence.values()) and t.p < 0.5]
+        # ... first those that lacked only significance (relevant on an axis): they are what more data decides;
+        # among those Holm leaves at 1, the one its own test ranks first (the real spindle's 15 thermometers)
+        best = min(better, key=lambda t: (not _relevant(d, t), t.p_holm, t.p, -t.score), default=None)
         if best is not None:
             out.append(f"closest candidate: {best.hypothesis.title}: {best.verdict}"
                        + _to_decide(d, best, sum(t.round == 1 for t in d.result.trials), k, block_h))
