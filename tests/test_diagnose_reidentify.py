@@ -319,6 +319,10 @@ def test_the_room_is_named_and_the_rewritten_model_predicts_a_fresh_day(plant_da
     d = diagnosed
     assert d.accepted_physics[0] == "room_daily"
     assert d.comparison.chosen == "reidentified"
+    # more data alone is scored beside the room's terms (issue 11): re-identified paths cannot absorb the room
+    alone = d.comparison.candidates["reidentified_alone"]
+    assert alone.title == "re-identified on all recordings (more data alone, no new term)"
+    assert alone.sse > 5 * d.comparison.written.sse
     before = estimate(base, fresh).metrics["z"].rms_um
     after = estimate(d.extended, fresh).metrics["z"].rms_um
     assert after < 0.5 * before, (before, after)
