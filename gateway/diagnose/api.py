@@ -334,7 +334,11 @@ def _one_pass(model: ThermalModel, recordings: Sequence[Recording], histories: M
     if refit:
         taken = [t for t in results["refit"].accepted if writable(t)]
         reid = reidentify(stack, model, taken, artefacts=artefacts, progress=progress)
-        if any(reid.terms.values()):  # the terms are written only where they beat the paths re-identified alone
+        if any(reid.terms.values()):  # more data alone beside the terms: written where significantly better
+            # searched afresh, not refined from the paths chosen beside the terms: refined, it stayed where they
+            # left it (the warm-day test's slow mode: 1.43 um held-out where the search gives 1.07, and the wrong
+            # term written); the search costs 1.4-1.7x the diagnosis's CPU where terms were taken
+            # (bench/diagnose_speed.py: room recorded v3 1.42, slow mode v1 1.70, chiller v2 1.58)
             alone = reidentify(stack, model, [], artefacts=artefacts, progress=progress)
             names = "; ".join(t.hypothesis.title for t in taken if not t.hypothesis.artefact)
     comparison = compare(stack, model, block, [t for t in results["frozen"].accepted if writable(t)], frozen,
