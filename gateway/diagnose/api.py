@@ -344,7 +344,7 @@ def _one_pass(model: ThermalModel, recordings: Sequence[Recording], histories: M
     comparison = compare(stack, model, block, [t for t in results["frozen"].accepted if writable(t)], frozen,
                          reid, artefacts=artefacts, options=options, alone=alone, reid_names=names)
     chooser = reid
-    if WITH_TERMS in comparison.candidates:  # more data alone predicts as well: the model without terms is written
+    if WITH_TERMS in comparison.candidates:  # more data alone predicts significantly better: it is written
         reid = alone
     explanation = None
     if reid is not None and comparison.chosen == "reidentified" and not any(reid.terms.values()):

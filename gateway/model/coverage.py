@@ -244,19 +244,21 @@ def coverage_of(du_list: Iterable[np.ndarray], factors: Sequence[str], *, source
 
 def merged(a: Coverage, b: Coverage) -> Coverage:
     """The union of two regions (ranges widened; a ratio kept only where both have it, widened)."""
-    ranges = dict(a.ranges)
-    for f, (lo, hi) in b.ranges.items():
-        old = ranges.get(f)
-        ranges[f] = (lo, hi) if old is None else (min(old[0], lo), max(old[1], hi))
     theirs = {r.key: r for r in b.ratios}
     ratios = tuple(Ratio(of=r.of, per=r.per, low=min(r.low, theirs[r.key].low), high=max(r.high, theirs[r.key].high))
                    for r in a.ratios if r.key in theirs)
-    columns = dict(a.columns)
-    for c, (lo, hi) in b.columns.items():
-        old = columns.get(c)
-        columns[c] = (lo, hi) if old is None else (min(old[0], lo), max(old[1], hi))
-    return Coverage(ranges=ranges, ratios=ratios, source=f"{a.source}; {b.source}", on_share=a.on_share,
-                    margin=a.margin, columns=columns)
+    return Coverage(ranges=_widened(a.ranges, b.ranges), ratios=ratios, source=f"{a.source}; {b.source}",
+                    on_share=a.on_share, margin=a.margin, columns=_widened(a.columns, b.columns))
+
+
+def _widened(a: Mapping[str, tuple[float, float]], b: Mapping[str, tuple[float, float]]
+             ) -> dict[str, tuple[float, float]]:
+    """Each name's [lowest, highest] over both (a name in one only as it is there)."""
+    out = dict(a)
+    for k, (lo, hi) in b.items():
+        old = out.get(k)
+        out[k] = (lo, hi) if old is None else (min(old[0], lo), max(old[1], hi))
+    return out
 
 
 def column_ranges(values: Mapping[str, Iterable[np.ndarray]]) -> dict[str, tuple[float, float]]:
@@ -439,24 +441,10 @@ def parse_coverage(t: Table, factors: Sequence[str], columns: Sequence[str] = ()
     margin = t.float("margin", default=MARGIN, min=0.0, max=100.0,
                      expected="the tolerance beyond a covered range, a share of it, in [0, 100]")
     ok = on_share is not None and margin is not None
-    ranges: dict[str, tuple[float, float]] = {}
-    rt = t.table("range", required=True, expected="a table of factor -> [lowest, highest] deviation")
-    if rt is None:
-        ok = False
-    else:
-        for f in rt:
-            if f not in factors:
-                rt.problem(f, f"not a factor of this model (factors: {', '.join(factors)})")
-                rt.raw(f)
-                ok = False
-                continue
-            pair = _pair(rt, f, "[lowest, highest] deviation of the factor in the identification data, lowest <= "
-                                "highest")
-            if pair is None:
-                ok = False
-            else:
-                ranges[f] = pair
-        rt.done()
+    ranges = _pairs(t, "range", factors, required=True, table="a table of factor -> [lowest, highest] deviation",
+                    unknown=f"not a factor of this model (factors: {', '.join(factors)})",
+                    pair="[lowest, highest] deviation of the factor in the identification data, lowest <= highest")
+    ok = ok and ranges is not None
     ratios = []
     qt = t.table("ratio", expected='a table of "of/per" -> [lowest, highest] ratio')
     if qt is not None:
@@ -474,28 +462,39 @@ def parse_coverage(t: Table, factors: Sequence[str], columns: Sequence[str] = ()
             else:
                 ratios.append(Ratio(of=parts[0], per=parts[1], low=pair[0], high=pair[1]))
         qt.done()
-    covered: dict[str, tuple[float, float]] = {}
-    ct = t.table("column", expected="a table of recorded column -> [lowest, highest] value")
-    if ct is not None:
-        for c in ct:
-            if c not in columns:
-                ct.problem(c, "not a recorded column an input of this model reads (" + (
-                    f"columns: {', '.join(columns)}" if columns else "it reads none") + ")")
-                ct.raw(c)
-                ok = False
-                continue
-            pair = _pair(ct, c, "[lowest, highest] value of the column in the data the model was fitted on, lowest "
-                                "<= highest")
-            if pair is None:
-                ok = False
-            else:
-                covered[c] = pair
-        ct.done()
+    covered = _pairs(t, "column", columns, table="a table of recorded column -> [lowest, highest] value",
+                     unknown="not a recorded column an input of this model reads ("
+                     + (f"columns: {', '.join(columns)}" if columns else "it reads none") + ")",
+                     pair="[lowest, highest] value of the column in the data the model was fitted on, lowest <= "
+                          "highest")
     t.done()
-    if not ok:
+    if not ok or ranges is None or covered is None:
         return None
     return Coverage(ranges=ranges, ratios=tuple(ratios), source=source or "", on_share=on_share, margin=margin,
                     columns=covered)
+
+
+def _pairs(t: Table, key: str, names: Sequence[str], *, table: str, unknown: str, pair: str,
+           required: bool = False) -> dict[str, tuple[float, float]] | None:
+    """The table ``key`` of name -> [lowest, highest] for ``names`` (``{}`` when absent); ``None`` after a problem."""
+    out: dict[str, tuple[float, float]] = {}
+    sub = t.table(key, required=required, expected=table)
+    if sub is None:
+        return None if required else out
+    ok = True
+    for name in sub:
+        if name not in names:
+            sub.problem(name, unknown)
+            sub.raw(name)
+            ok = False
+            continue
+        got = _pair(sub, name, pair)
+        if got is None:
+            ok = False
+        else:
+            out[name] = got
+    sub.done()
+    return out if ok else None
 
 
 def describe_coverage(cov: Coverage | None, units: Mapping[str, str] | None = None) -> list[str]:
