@@ -45,7 +45,8 @@ WITH_TERMS = "reidentified_terms"
 #: the order in which passing candidates are preferred: the fewest changes first; the paths re-identified alone
 #: after those with the terms the refit search took (that search already judged them beside refitted paths, and
 #: preferring the model without them unless they were significantly better again named fewer right families
-#: and predicted the changed cases' fresh days 18 % worse: bench/diagnose.py, 13 of 126 cases changed)
+#: and predicted the changed cases' fresh days 18 % worse: bench/diagnose.py, 13 of 126 cases changed; writing
+#: the lower held-out error of the two changed 3, one right name lost and two fresh days worse)
 ORDER = ("identified", "terms", "reidentified", ALONE)
 #: with this many recordings to judge on, each is left out whole
 MIN_RECORDINGS_OUT = 3
