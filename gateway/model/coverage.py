@@ -242,25 +242,6 @@ def coverage_of(du_list: Iterable[np.ndarray], factors: Sequence[str], *, source
                     source=source, on_share=on_share, margin=margin)
 
 
-def merged(a: Coverage, b: Coverage) -> Coverage:
-    """The union of two regions (ranges widened; a ratio kept only where both have it, widened)."""
-    theirs = {r.key: r for r in b.ratios}
-    ratios = tuple(Ratio(of=r.of, per=r.per, low=min(r.low, theirs[r.key].low), high=max(r.high, theirs[r.key].high))
-                   for r in a.ratios if r.key in theirs)
-    return Coverage(ranges=_widened(a.ranges, b.ranges), ratios=ratios, source=f"{a.source}; {b.source}",
-                    on_share=a.on_share, margin=a.margin, columns=_widened(a.columns, b.columns))
-
-
-def _widened(a: Mapping[str, tuple[float, float]], b: Mapping[str, tuple[float, float]]
-             ) -> dict[str, tuple[float, float]]:
-    """Each name's [lowest, highest] over both (a name in one only as it is there)."""
-    out = dict(a)
-    for k, (lo, hi) in b.items():
-        old = out.get(k)
-        out[k] = (lo, hi) if old is None else (min(old[0], lo), max(old[1], hi))
-    return out
-
-
 def column_ranges(values: Mapping[str, Iterable[np.ndarray]]) -> dict[str, tuple[float, float]]:
     """[lowest, highest] finite value of each recorded column over its arrays (a column with none is left out)."""
     out = {}
@@ -516,4 +497,4 @@ def describe_coverage(cov: Coverage | None, units: Mapping[str, str] | None = No
 
 
 __all__ = ["Coverage", "CoverageCheck", "Excursion", "Ratio", "check_coverage", "co_varying_pairs", "column_ranges",
-           "coverage_of", "coverage_to_toml", "describe_coverage", "merged", "parse_coverage"]
+           "coverage_of", "coverage_to_toml", "describe_coverage", "parse_coverage"]
