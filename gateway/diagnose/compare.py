@@ -140,12 +140,11 @@ def compare(stack: Stack, model: ThermalModel, block: np.ndarray, accepted: Sequ
         chosen = best.key
     if alone is not None:
         with_c, alone_c = cands["reidentified"], cands[ALONE]
+        p = one_sided_p(_informative(with_c.block_sse, alone_c.block_sse))  # without the terms better than with
         if chosen == "reidentified" and alone_c.sse < with_c.sse:  # the table shows both: say why not this one
-            p = one_sided_p(_informative(with_c.block_sse, alone_c.block_sse))
             alone_c.verdict += (f"; lower held-out error than the model with the terms, but not significantly over "
                                 f"the blocks (p = {p:.2g}, {options.alpha:g} needed): not written")
         if chosen == ALONE:  # the written re-identification is the one without terms: "reidentified" downstream
-            p = one_sided_p(_informative(with_c.block_sse, alone_c.block_sse))
             with_c.verdict += (f"; the model re-identified without them predicts the held-out blocks significantly "
                                f"better (p = {p:.2g}): not written")
             chosen = "reidentified"
