@@ -425,7 +425,6 @@ def parse_coverage(t: Table, factors: Sequence[str], columns: Sequence[str] = ()
     ranges = _pairs(t, "range", factors, required=True, table="a table of factor -> [lowest, highest] deviation",
                     unknown=f"not a factor of this model (factors: {', '.join(factors)})",
                     pair="[lowest, highest] deviation of the factor in the identification data, lowest <= highest")
-    ok = ok and ranges is not None
     ratios = []
     qt = t.table("ratio", expected='a table of "of/per" -> [lowest, highest] ratio')
     if qt is not None:
