@@ -181,7 +181,7 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
                 break
             if progress:
                 progress("the work before the recordings that start warm, chosen again by the re-identified model")
-            now = _one_pass(model, recordings, again, warm, **kw)
+            now = _one_pass(model, recordings, again, warm, previous=now, **kw)
             if now.comparison.written.sse < best.comparison.written.sse:
                 best = now
         histories = best.histories
@@ -253,6 +253,8 @@ class _Pass:
     #: chooses the work before a warm recording again (the fullest account of the data; the one written may be
     #: the model without terms, which predicts the held-out blocks as well but not a warm start's history)
     chooser: Reidentified | None = None
+    #: the model re-identified with no term beside the paths, where it was (more data alone beside the terms)
+    alone: Reidentified | None = None
 
 
 def _choices(histories: Mapping[int, tuple[Recording, str]]) -> dict[int, str]:
@@ -263,8 +265,12 @@ def _choices(histories: Mapping[int, tuple[Recording, str]]) -> dict[int, str]:
 def _one_pass(model: ThermalModel, recordings: Sequence[Recording], histories: Mapping[int, tuple[Recording, str]],
               warm: Mapping[int, str], *, infos: Sequence[FactorInfo], signals_of: tuple[list[str], list[str]],
               options: Options, families: Sequence[str] | None, gap_policy: str,
-              progress: Callable[[str], None] | None) -> _Pass:
-    """Locate, search, re-identify and compare, with every recording run from ``histories``."""
+              progress: Callable[[str], None] | None, previous: _Pass | None = None) -> _Pass:
+    """Locate, search, re-identify and compare, with every recording run from ``histories``.
+
+    ``previous``: the pass before (other work before the warm recordings): its re-identifications are refined
+    where the same terms are beside the paths, not searched again (:func:`reidentify`'s ``starts``).
+    """
     stack = build_stack(model, [continued(histories[r][0], rec) if r in histories else rec
                                 for r, rec in enumerate(recordings)], gap_policy=gap_policy)
     if histories:
@@ -333,13 +339,18 @@ def _one_pass(model: ThermalModel, recordings: Sequence[Recording], histories: M
     names = ""
     if refit:
         taken = [t for t in results["refit"].accepted if writable(t)]
-        reid = reidentify(stack, model, taken, artefacts=artefacts, progress=progress)
+        # the passes differ in a few recordings' first hours: the search's choice of structure, made again,
+        # cost two thirds of a three-pass diagnosis's CPU (cabinet recorded v1 cut at 13 h: 97-111 s on the
+        # AMD EPYC PC of 4 Dec)
+        reid = reidentify(stack, model, taken, artefacts=artefacts, progress=progress,
+                          starts=(previous.chooser, previous.alone) if previous else ())
         if any(reid.terms.values()):  # more data alone beside the terms: written where significantly better
             # searched afresh, not refined from the paths chosen beside the terms: refined, it stayed where they
             # left it (the warm-day test's slow mode: 1.43 um held-out where the search gives 1.07, and the wrong
             # term written); the search costs 1.4-1.7x the diagnosis's CPU where terms were taken
             # (bench/diagnose_speed.py: room recorded v3 1.42, slow mode v1 1.70, chiller v2 1.58)
-            alone = reidentify(stack, model, [], artefacts=artefacts, progress=progress)
+            alone = reidentify(stack, model, [], artefacts=artefacts, progress=progress,
+                               starts=(previous.alone, previous.chooser) if previous else ())
             names = "; ".join(t.hypothesis.title for t in taken if not t.hypothesis.artefact)
     comparison = compare(stack, model, block, [t for t in results["frozen"].accepted if writable(t)], frozen,
                          reid, artefacts=artefacts, options=options, alone=alone, reid_names=names)
@@ -353,7 +364,7 @@ def _one_pass(model: ThermalModel, recordings: Sequence[Recording], histories: M
                               artefacts=artefacts, options=sub, writable=writable, progress=progress)
     return _Pass(histories=histories, stack=stack, findings=findings, adequacy=adequacy,
                  block=block, hypotheses=hyps, confused=confused, results=results, reid=reid, comparison=comparison,
-                 explanation=explanation, missing=missing, chooser=chooser)
+                 explanation=explanation, missing=missing, chooser=chooser, alone=alone)
 
 
 def _supported_region(model: ThermalModel, recordings: Sequence[Recording], *, reidentified: bool,

@@ -27,7 +27,7 @@ from gateway.diagnose.search import Term, Trial, setting_columns
 from gateway.diagnose.select import BURN_IN
 from gateway.errors import IdentificationError
 from gateway.identify.common import Bounds, ExperimentSet
-from gateway.identify.joint import AxisProblem, AxisSelection, select_axis
+from gateway.identify.joint import AxisProblem, AxisSelection, refine_axis, select_axis
 from gateway.model.model import PathTF, ThermalModel
 
 #: lags per input in the correction bank (log-spaced over the identification's time scales)
@@ -91,12 +91,16 @@ class Reidentified:
     extras: dict[str, list[np.ndarray]] = field(default_factory=dict)
     n_phys: dict[str, int] = field(default_factory=dict)
     bounds: Bounds | None = None
+    #: per axis, what was fitted beside the paths, in words (each term's hypothesis and setting, the
+    #: artefacts' count): a later re-identification with the same is refined from this one (``starts``)
+    beside: dict[str, tuple] = field(default_factory=dict)
     wall_s: float = 0.0
 
 
 def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
                artefacts: Mapping[str, Sequence[np.ndarray]] | None = None,
-               progress: Callable[[str], None] | None = None) -> Reidentified:
+               progress: Callable[[str], None] | None = None, starts: Sequence[Reidentified | None] = ()
+               ) -> Reidentified:
     """Identify ``model``'s paths again on every recording, jointly with the accepted hypotheses' terms.
 
     Every path of the factors is refitted by the joint identifier (its structure chosen again, weak paths
@@ -106,6 +110,11 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
     "gain correction" of an identified path is dropped (the path is refitted anyway); its nuisance columns
     (an initial state, a drift) and the measurement artefacts are fitted beside and left out of the model.
     Paths of derived inputs ``model`` already has stay as they are.
+
+    ``starts``: re-identifications on nearly the same stack (diagnosis's pass before: the same recordings,
+    other work before the warm ones); an axis with the same terms and artefacts beside its paths as in one of
+    them is refined from the structures and time constants chosen there (:func:`refine_axis`), not searched
+    again.
     """
     t0 = time.perf_counter()
     factors = model.factors
@@ -120,6 +129,7 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
     n_phys: dict[str, int] = {}
     fixed: dict[str, np.ndarray] = {}
     terms: dict[str, list[Term]] = {}
+    beside: dict[str, tuple] = {}
     prediction = np.zeros_like(stack.base)
     paths: list[PathTF] = []
     for i, a in enumerate(model.axes):
@@ -146,13 +156,19 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
         nuisance += list((artefacts or {}).get(a, []))
         target = stack.y - frozen
         extras[a], n_phys[a] = [*phys, *nuisance], len(phys)
+        beside[a] = (tuple((t.hypothesis.key, s) for t, s in kept), len(nuisance))
         es = stack_experiments(stack, factors, target, extras[a])
         if progress:
             progress(f"re-identifying axis {a}")
         # the extra columns (terms and nuisance, 28-32 of 40-50 on the bench's room cases) factorised once, not
         # in every evaluation: the room-recorded family's diagnosis 41-60 s -> 35-46 s of CPU
-        sel = select_axis(es, i, active=active, seeds=[seeds[a]], input_bounds=[bounds] * len(factors),
-                          project_extra=True)
+        same = next((r.selections[a] for r in starts if r is not None and a in r.selections
+                     and r.beside.get(a) == beside[a]), None)
+        if same is not None:
+            sel = refine_axis(es, i, same, input_bounds=[bounds] * len(factors), project_extra=True)
+        else:
+            sel = select_axis(es, i, active=active, seeds=[seeds[a]], input_bounds=[bounds] * len(factors),
+                              project_extra=True)
         selections[a] = sel
         fit = sel.chosen
         # the time constants are the identifier's; the gains of what is written are fitted again without the
@@ -178,7 +194,8 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
         "pruned": {a: list(s.pruned) for a, s in selections.items()}}})
     extended = extend_model(base, terms)
     return Reidentified(model=extended, prediction=prediction, fixed=fixed, selections=selections,
-                        terms=terms, extras=extras, n_phys=n_phys, bounds=bounds, wall_s=time.perf_counter() - t0)
+                        terms=terms, extras=extras, n_phys=n_phys, bounds=bounds, beside=beside,
+                        wall_s=time.perf_counter() - t0)
 
 
 #: at most this many folds are identified again for the held-out scoring (more held-out ids are grouped)

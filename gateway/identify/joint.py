@@ -813,6 +813,26 @@ def select_axis(es: ExperimentSet, axis_index: int, *, active: Sequence[bool],
                          pruned=pruned, wall_s=time.perf_counter() - t0)
 
 
+def refine_axis(es: ExperimentSet, axis_index: int, previous: AxisSelection, *,
+                input_bounds: Sequence[Bounds | None] | None = None, project_extra: bool = False) -> AxisSelection:
+    """:func:`select_axis`'s choice on a slightly different set, refined from ``previous`` instead of searched.
+
+    The structures ``previous`` chose (its pruned paths left out) are fitted again from its time constants;
+    nothing else is tried. For a set that differs from the one ``previous`` was selected on in a few rows
+    only (diagnosis's history passes: the same recordings, other work before the warm ones), where a search
+    would cost tens of fits for the one it refines.
+    """
+    t0 = time.perf_counter()
+    problem = AxisProblem(es, axis_index, input_bounds=input_bounds, project_extra=project_extra)
+    fit = problem.fit(previous.chosen.structures, previous.chosen.thetas)
+    n_eff, rho = effective_n(fit.residuals)
+    fit.bic = bic(fit, n_eff)
+    problem.attach_uncertainties(fit, fit.n / n_eff)
+    structure = next((s for s in fit.structures if s != "zero"), "zero")
+    return AxisSelection(axis=previous.axis, chosen=fit, tried={structure: fit}, rho=rho, n_eff=n_eff,
+                         pruned=previous.pruned, wall_s=time.perf_counter() - t0)
+
+
 def _theta_starts(structures: Sequence[str], seeds: Sequence[Sequence[Sequence[float]]],
                   problem: AxisProblem) -> list[list[list[float]]]:
     return [[theta_from_time_constants(s, seed[j], problem.input_bounds[j]) if s != "zero" else []
