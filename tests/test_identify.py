@@ -258,3 +258,42 @@ def test_a_column_nearly_in_the_extra_columns_span_is_projected_orthogonal_to_th
     left = problem.project_extra(column)
     assert np.linalg.norm(left) == pytest.approx(1e-8, rel=0.5)  # the part outside the span, about as made
     assert np.linalg.norm(basis.qt(left)) < 1e-12 * np.linalg.norm(left)
+
+
+def test_a_selection_refined_on_slightly_other_data_lands_where_a_new_search_does():
+    """Diagnosis's later history passes refine the pass before's fits instead of searching again: where the
+    work assumed before a recording that starts warm changes (its inputs, displacement unmeasured there), the
+    refined selection chooses the structures a full search chooses, with its time constants and residual."""
+    import math
+    from dataclasses import replace
+
+    from gateway.identify.joint import refine_axis, select_axis
+
+    # the first experiment starts warm: 80 min of its own levels ran before it, displacement not recorded then
+    lv = PAPER_DESIGN[0]
+    u0 = schedule_inputs([Segment(minutes=10, levels={}), Segment(minutes=80, levels=lv), Segment(minutes=30, levels={}),
+                          Segment(minutes=60, levels=lv), Segment(minutes=270, levels={})], F, IDLE)
+    recs = [make_recording(FIRST_ORDER_PLANT, u0, name="e0", noise_um=0.1, seed=70)]
+    recs += [make_recording(FIRST_ORDER_PLANT, experiment(lv, total=360), name=f"e{k}", noise_um=0.1, seed=70 + k)
+             for k, lv in enumerate(PAPER_DESIGN) if k]
+    es = ExperimentSet.from_prepared([prepare(r, factors=F, axes=("x", "z")) for r in recs], factors=F,
+                                     axes=("x", "z"))
+    es.y[:, 0, :90] = np.nan
+    active = [bool(np.any(es.du[j])) for j in range(len(F))]
+    first = select_axis(es, 1, active=active)
+    # the next pass assumes 50 min of that work instead of 80
+    du = es.du.copy()
+    du[:, 0, :40] = 0.0
+    other = replace(es, du=du)
+    searched = select_axis(other, 1, active=active)
+    refined = refine_axis(other, 1, first)
+    assert searched.chosen.rss > 1.02 * first.chosen.rss, (searched.chosen.rss, first.chosen.rss)  # the work matters
+    assert refined.chosen.structures == searched.chosen.structures
+    assert refined.pruned == searched.pruned
+    assert refined.chosen.rss <= 1.001 * searched.chosen.rss
+    for j, s in enumerate(searched.chosen.structures):
+        if s == "zero":
+            continue
+        taus = [math.exp(v) for v in refined.chosen.thetas[j]]
+        assert taus == pytest.approx([math.exp(v) for v in searched.chosen.thetas[j]], rel=0.02), F[j]
+    assert refined.chosen.gain_cov is not None  # what the written model's gain correlation needs

@@ -786,6 +786,13 @@ def select_axis(es: ExperimentSet, axis_index: int, *, active: Sequence[bool],
         tried_seeds = earlier if cand == "second_order" and earlier else [starts, *earlier]
         tried[cand] = problem.best_of(structures, _theta_starts(structures, [*tried_seeds, *seeds], problem))
     tried = {c: tried[c] for c in candidates}
+    return _choose(problem, tried, prune=prune, progress=progress, t0=t0)
+
+
+def _choose(problem: AxisProblem, tried: dict[str, AxisFit], *, prune: bool,
+            progress: Callable[[str], None] | None, t0: float) -> AxisSelection:
+    """The fit of ``tried`` with the least :func:`bic`, its weak paths pruned where the criterion allows."""
+    es, axis_index = problem.es, problem.i
     richest = max(tried.values(), key=lambda f: f.k)
     n_eff, rho = effective_n(richest.residuals)
     for fit in tried.values():
@@ -813,24 +820,19 @@ def select_axis(es: ExperimentSet, axis_index: int, *, active: Sequence[bool],
                          pruned=pruned, wall_s=time.perf_counter() - t0)
 
 
-def refine_axis(es: ExperimentSet, axis_index: int, previous: AxisSelection, *,
+def refine_axis(es: ExperimentSet, axis_index: int, previous: AxisSelection, *, prune: bool = True,
                 input_bounds: Sequence[Bounds | None] | None = None, project_extra: bool = False) -> AxisSelection:
-    """:func:`select_axis`'s choice on a slightly different set, refined from ``previous`` instead of searched.
+    """:func:`select_axis` on a slightly different set, every structure refined from ``previous`` instead of searched.
 
-    The structures ``previous`` chose (its pruned paths left out) are fitted again from its time constants;
-    nothing else is tried. For a set that differs from the one ``previous`` was selected on in a few rows
-    only (diagnosis's history passes: the same recordings, other work before the warm ones), where a search
-    would cost tens of fits for the one it refines.
+    Each structure ``previous`` tried is fitted again from where it ended there (one start, not the bank's and
+    every earlier fit's raced), then chosen and pruned as :func:`select_axis` does. For a set that differs
+    from the one ``previous`` was selected on in a few rows (diagnosis's history passes: the same recordings,
+    other work before the warm ones), where a search costs tens of fits.
     """
     t0 = time.perf_counter()
     problem = AxisProblem(es, axis_index, input_bounds=input_bounds, project_extra=project_extra)
-    fit = problem.fit(previous.chosen.structures, previous.chosen.thetas)
-    n_eff, rho = effective_n(fit.residuals)
-    fit.bic = bic(fit, n_eff)
-    problem.attach_uncertainties(fit, fit.n / n_eff)
-    structure = next((s for s in fit.structures if s != "zero"), "zero")
-    return AxisSelection(axis=previous.axis, chosen=fit, tried={structure: fit}, rho=rho, n_eff=n_eff,
-                         pruned=previous.pruned, wall_s=time.perf_counter() - t0)
+    tried = {c: problem.fit(f.structures, f.thetas) for c, f in previous.tried.items()}
+    return _choose(problem, tried, prune=prune, progress=None, t0=t0)
 
 
 def _theta_starts(structures: Sequence[str], seeds: Sequence[Sequence[Sequence[float]]],
