@@ -339,9 +339,10 @@ def _one_pass(model: ThermalModel, recordings: Sequence[Recording], histories: M
     names = ""
     if refit:
         taken = [t for t in results["refit"].accepted if writable(t)]
-        # the passes differ in a few recordings' first hours: the search's choice of structure, made again,
-        # cost two thirds of a three-pass diagnosis's CPU (cabinet recorded v1 cut at 13 h: 97-111 s on the
-        # AMD EPYC PC of 4 Dec)
+        # the passes differ in the work before a few recordings: each later one refines the re-identifications
+        # of the one before instead of searching their structures again (bench/diagnose.py --cut-days 13, on the
+        # AMD EPYC PC of 4 Dec: cabinet recorded v1 96.7 -> 60.3 s of CPU; the 54 cases' max 88.4 -> 72.2 s,
+        # 12 changed, fresh-day pooled RMS geometric mean x1.002)
         reid = reidentify(stack, model, taken, artefacts=artefacts, progress=progress,
                           starts=(previous.chooser, previous.alone) if previous else ())
         if any(reid.terms.values()):  # more data alone beside the terms: written where significantly better
