@@ -113,8 +113,8 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
 
     ``starts``: re-identifications on nearly the same stack (diagnosis's pass before: the same recordings,
     other work before the warm ones); an axis with the same terms and artefacts beside its paths as in one of
-    them is refined from the structures and time constants chosen there (:func:`refine_axis`), not searched
-    again.
+    them is refined from the fits made there, every structure tried there from where it ended, then chosen and
+    pruned again (:func:`refine_axis`), not searched again.
     """
     t0 = time.perf_counter()
     factors = model.factors
