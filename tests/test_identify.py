@@ -270,9 +270,10 @@ def test_a_selection_refined_on_slightly_other_data_lands_where_a_new_search_doe
     from gateway.identify.joint import refine_axis, select_axis
 
     # the first experiment starts warm: 80 min of its own levels ran before it, displacement not recorded then
-    lv = PAPER_DESIGN[0]
-    u0 = schedule_inputs([Segment(minutes=10, levels={}), Segment(minutes=80, levels=lv), Segment(minutes=30, levels={}),
-                          Segment(minutes=60, levels=lv), Segment(minutes=270, levels={})], F, IDLE)
+    work = PAPER_DESIGN[0]
+    u0 = schedule_inputs([Segment(minutes=10, levels={}), Segment(minutes=80, levels=work),
+                          Segment(minutes=30, levels={}), Segment(minutes=60, levels=work),
+                          Segment(minutes=270, levels={})], F, IDLE)
     recs = [make_recording(FIRST_ORDER_PLANT, u0, name="e0", noise_um=0.1, seed=70)]
     recs += [make_recording(FIRST_ORDER_PLANT, experiment(lv, total=360), name=f"e{k}", noise_um=0.1, seed=70 + k)
              for k, lv in enumerate(PAPER_DESIGN) if k]

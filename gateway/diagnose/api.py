@@ -341,7 +341,7 @@ def _one_pass(model: ThermalModel, recordings: Sequence[Recording], histories: M
         taken = [t for t in results["refit"].accepted if writable(t)]
         # the passes differ in the work before a few recordings: each later one refines the re-identifications
         # of the one before instead of searching their structures again (bench/diagnose.py --cut-days 13, on the
-        # AMD EPYC PC of 4 Dec: cabinet recorded v1 96.7 -> 60.3 s of CPU; the 54 cases' max 88.4 -> 72.2 s,
+        # AMD EPYC PC of 4 Dec: cabinet recorded v1 96.7-111 -> 72-88 s of CPU; the 54 cases' max 88.4 -> 72.2 s,
         # 12 changed, fresh-day pooled RMS geometric mean x1.002)
         reid = reidentify(stack, model, taken, artefacts=artefacts, progress=progress,
                           starts=(previous.chooser, previous.alone) if previous else ())

@@ -91,8 +91,8 @@ class Reidentified:
     extras: dict[str, list[np.ndarray]] = field(default_factory=dict)
     n_phys: dict[str, int] = field(default_factory=dict)
     bounds: Bounds | None = None
-    #: per axis, what was fitted beside the paths, in words (each term's hypothesis and setting, the
-    #: artefacts' count): a later re-identification with the same is refined from this one (``starts``)
+    #: per axis, what was fitted beside the paths (each term's hypothesis key and setting, the nuisance
+    #: columns' count): a later re-identification with the same is refined from this one (``starts``)
     beside: dict[str, tuple] = field(default_factory=dict)
     wall_s: float = 0.0
 
