@@ -251,6 +251,25 @@ class Stack:
         self._cache[key] = cols
         return cols
 
+    def history_decays(self, tau_s: float) -> list[np.ndarray]:
+        """exp(-t / tau) from the own first window of each recording that runs from a fitted history (``lead``).
+
+        What that history leaves there is a guess (hours of work its first hours show): a free decay per mode
+        lets a fit take the guess's error beside the paths instead of in them.
+        """
+        key = ("history decays", tau_s)
+        if key in self._cache:
+            return self._cache[key]  # type: ignore[return-value]
+        cols = []
+        for r, (_, b) in enumerate(self.bounds):
+            if self.lead and self.lead[r]:
+                s = self.own_start(r)
+                c = np.zeros(self.n)
+                c[s:b] = np.exp(-(self.time_s[s:b] - self.time_s[s] + self.dt_s) / tau_s)
+                cols.append(c)
+        self._cache[key] = cols
+        return cols
+
     def ramps(self, tau_s: float = 0.0) -> list[np.ndarray]:
         """Hours since each recording's start (a sensor's linear drift), through a lag of ``tau_s`` if > 0.
 

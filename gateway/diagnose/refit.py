@@ -32,6 +32,20 @@ from gateway.model.model import PathTF, ThermalModel
 
 #: lags per input in the correction bank (log-spaced over the identification's time scales)
 BANK_PER_DECADE = 2.5
+#: the time constants (h) of the free decays beside each recording that runs from a fitted history (see
+#: :func:`history_free`)
+HISTORY_DECAY_H = (0.5, 2.0, 6.0)
+
+
+def history_free(stack: Stack) -> list[np.ndarray]:
+    """Free decays from the own start of each recording that runs from a fitted history: nuisance of every refit.
+
+    That history (:func:`gateway.diagnose.api.start_histories`) is the best of a few guesses, chosen on the
+    axes pooled: on a small axis it can be well off, and paths refitted through it bend to put that right (the
+    re-identified x paths of bench/diagnose.py --cut-days 13 predicted the whole fresh day worse in 12 of 26
+    rewritten cases: none b v3 x 0.25 -> 0.96 um). Beside the paths, what the guess leaves wrong is not theirs.
+    """
+    return [c for tau_h in HISTORY_DECAY_H for c in stack.history_decays(tau_h * 3600.0)]
 
 
 def bank_taus(stack: Stack, model: ThermalModel) -> list[float]:
@@ -154,6 +168,7 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
             phys += [stack.column(c, setting.chain) for c in comps]
             nuisance += n_cols
         nuisance += list((artefacts or {}).get(a, []))
+        nuisance += history_free(stack)
         target = stack.y - frozen
         extras[a], n_phys[a] = [*phys, *nuisance], len(phys)
         beside[a] = (tuple((t.hypothesis.key, s) for t, s in kept), len(nuisance))
@@ -173,10 +188,11 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
         fit = sel.chosen
         # the time constants are the identifier's; the gains of what is written are fitted again without the
         # nuisance (a recording's own drift or initial state), the way the scoring and `cncgw estimate` see
-        # the model: each recording from rest, a free zero per recording
+        # the model: each recording from rest, a free zero per recording (and a fitted history's error)
         fitted = fit.paths(factors)
         cols = unit_columns(stack, fitted) + phys
-        g = final_gains(stack.y[i] - frozen[i], cols, stack.per_recording() + list((artefacts or {}).get(a, [])))
+        g = final_gains(stack.y[i] - frozen[i], cols,
+                        stack.per_recording() + list((artefacts or {}).get(a, [])) + history_free(stack))
         axis_paths, terms[a] = gains_into(stack, a, fitted, kept, g)
         paths += axis_paths
         prediction[i] = frozen[i] + sum((x * c for x, c in zip(g, cols, strict=True)), np.zeros(stack.n))
@@ -245,7 +261,7 @@ def held_out_reidentified(stack: Stack, model: ThermalModel, reid: Reidentified,
             except (ValueError, IdentificationError):
                 continue  # nothing left to fit on: the fold stays unscored for this candidate
             cols = unit_columns(stack, fit.paths(factors)) + list(phys)
-            g = final_gains(masked[i], cols, offsets + list((artefacts or {}).get(a, [])))
+            g = final_gains(masked[i], cols, offsets + list((artefacts or {}).get(a, [])) + history_free(stack))
             shape = sum((x * c for x, c in zip(g, cols, strict=True)), np.zeros(stack.n))
             for c in offsets:
                 member = (c != 0) & held
