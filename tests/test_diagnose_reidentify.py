@@ -22,7 +22,6 @@ from gateway.cli import main
 from gateway.diagnose import api, diagnose, refit
 from gateway.diagnose.api import start_histories, uncovered_factors, validate
 from gateway.diagnose.data import build_stack
-from gateway.diagnose.refit import reidentify
 from gateway.identify import identify
 from gateway.model import FirstOrder, PathTF, ThermalModel, load_model, save_model
 from gateway.recording import Recording, continued, write_recording
@@ -303,7 +302,7 @@ def test_a_wrong_guess_of_the_work_before_days_cut_mid_work_does_not_bend_the_re
             recs.append(continued(hist, part))
             lead.append(len(hist))
         stack = replace(build_stack(base, [*exps, *recs]), lead=(0, 0, 0, *lead))
-        return estimate(reidentify(stack, base, []).model, fresh).metrics["z"].rms_um
+        return estimate(refit.reidentify(stack, base, []).model, fresh).metrics["z"].rms_um
 
     true = fresh_rms(None)
     assert true < 0.2  # the noise is 0.1 um
