@@ -239,17 +239,7 @@ class Stack:
 
     def decays(self, tau_s: float) -> list[np.ndarray]:
         """exp(-t / tau) from each recording's start: an unknown initial state of a mode with ``tau_s`` (cached)."""
-        key = ("decays", tau_s)
-        if key in self._cache:
-            return self._cache[key]  # type: ignore[return-value]
-        t = self.rel_time_s()
-        cols = []
-        for a, b in self.bounds:
-            c = np.zeros(self.n)
-            c[a:b] = np.exp(-(t[a:b] + self.dt_s) / tau_s)
-            cols.append(c)
-        self._cache[key] = cols
-        return cols
+        return self._decays_from("decays", tau_s, self.bounds)
 
     def history_decays(self, tau_s: float) -> list[np.ndarray]:
         """exp(-t / tau) from the own first window of each recording that runs from a fitted history (``lead``).
@@ -257,16 +247,19 @@ class Stack:
         What that history leaves there is a guess (hours of work its first hours show): a free decay per mode
         lets a fit take the guess's error beside the paths instead of in them.
         """
-        key = ("history decays", tau_s)
+        return self._decays_from("history decays", tau_s, [(self.own_start(r), b) for r, (_, b) in
+                                                           enumerate(self.bounds) if self.lead and self.lead[r]])
+
+    def _decays_from(self, kind: str, tau_s: float, spans: Sequence[tuple[int, int]]) -> list[np.ndarray]:
+        """exp(-t / tau) over each span (start, end) of windows, t from one window before its start (cached)."""
+        key = (kind, tau_s)
         if key in self._cache:
             return self._cache[key]  # type: ignore[return-value]
         cols = []
-        for r, (_, b) in enumerate(self.bounds):
-            if self.lead and self.lead[r]:
-                s = self.own_start(r)
-                c = np.zeros(self.n)
-                c[s:b] = np.exp(-(self.time_s[s:b] - self.time_s[s] + self.dt_s) / tau_s)
-                cols.append(c)
+        for a, b in spans:
+            c = np.zeros(self.n)
+            c[a:b] = np.exp(-(self.time_s[a:b] - self.time_s[a] + self.dt_s) / tau_s)
+            cols.append(c)
         self._cache[key] = cols
         return cols
 

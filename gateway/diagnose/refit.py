@@ -147,6 +147,7 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
     fixed: dict[str, np.ndarray] = {}
     terms: dict[str, list[Term]] = {}
     beside: dict[str, tuple] = {}
+    free = history_free(stack)
     prediction = np.zeros_like(stack.base)
     paths: list[PathTF] = []
     for i, a in enumerate(model.axes):
@@ -171,7 +172,7 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
             phys += [stack.column(c, setting.chain) for c in comps]
             nuisance += n_cols
         nuisance += list((artefacts or {}).get(a, []))
-        nuisance += history_free(stack)
+        nuisance += free
         target = stack.y - frozen
         extras[a], n_phys[a] = [*phys, *nuisance], len(phys)
         beside[a] = (tuple((t.hypothesis.key, s) for t, s in kept), len(nuisance))
@@ -195,7 +196,7 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
         fitted = fit.paths(factors)
         cols = unit_columns(stack, fitted) + phys
         g = final_gains(stack.y[i] - frozen[i], cols,
-                        stack.per_recording() + list((artefacts or {}).get(a, [])) + history_free(stack))
+                        stack.per_recording() + list((artefacts or {}).get(a, [])) + free)
         axis_paths, terms[a] = gains_into(stack, a, fitted, kept, g)
         paths += axis_paths
         prediction[i] = frozen[i] + sum((x * c for x, c in zip(g, cols, strict=True)), np.zeros(stack.n))
@@ -242,6 +243,7 @@ def held_out_reidentified(stack: Stack, model: ThermalModel, reid: Reidentified,
     """
     factors = model.factors
     offsets = stack.per_recording()
+    free = history_free(stack)
     out: dict[str, np.ndarray] = {}
     for i, a in enumerate(stack.axes):
         sel = reid.selections.get(a)
@@ -264,7 +266,7 @@ def held_out_reidentified(stack: Stack, model: ThermalModel, reid: Reidentified,
             except (ValueError, IdentificationError):
                 continue  # nothing left to fit on: the fold stays unscored for this candidate
             cols = unit_columns(stack, fit.paths(factors)) + list(phys)
-            g = final_gains(masked[i], cols, offsets + list((artefacts or {}).get(a, [])) + history_free(stack))
+            g = final_gains(masked[i], cols, offsets + list((artefacts or {}).get(a, [])) + free)
             shape = sum((x * c for x, c in zip(g, cols, strict=True)), np.zeros(stack.n))
             for c in offsets:
                 member = (c != 0) & held
