@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/diagnose_speed.py [--cases "room recorded:3,slow mode:1,none:1"]
                                              [--baseline REV] [--this REV] [--cache DIR] [--keep DIR]
-                                             [--repeat N]
+                                             [--repeat N] [--cut-days H]
 
 Per case (an effect and plant variant of bench/diagnose.py's new protocol: the nine identification
 experiments and four production days, the effect acting in all of them), the recordings are simulated once
@@ -14,6 +14,8 @@ BLAS to one thread. The CPU seconds of that process during the diagnosis (``time
 printed with their ratio, and what each diagnosis decided is compared: the model written, the accepted
 terms, and the held-out figures of every candidate (pooled squared error, RMS per axis) as relative
 differences. Timing on a shared machine is noisy: the ratio of two runs made back to back is the figure.
+``--cut-days H`` gives the production days from H hours on, as bench/diagnose.py's does (a diagnosis of days
+that start warm runs up to three passes).
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from bench.diagnose import PROFILE, diagnosis_names, new_plan, record  # noqa: E402
+from bench.diagnose import EFFECTS, PROFILE, cut_days_file, diagnosis_names, new_plan, record  # noqa: E402
 
 ONE_THREAD = {v: "1" for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 #: run in a fresh interpreter with the tree to time first on its path; prints its CPU seconds
@@ -111,6 +113,8 @@ def main() -> int:
     ap.add_argument("--keep", help="keep the models and both diagnoses' reports here")
     ap.add_argument("--repeat", type=int, default=1,
                     help="time each tree N times, taking turns, keep the least CPU (default 1)")
+    ap.add_argument("--cut-days", type=float, metavar="H",
+                    help="give the production days from H hours on (as bench/diagnose.py --cut-days)")
     args = ap.parse_args()
     cases = []
     for item in args.cases.split(","):
@@ -131,12 +135,15 @@ def main() -> int:
             days = [record(t, n, cache) for n, t in plan.days.items()]
             case_dir = work / f"{effect.replace(' ', '-')}-v{variant}"
             case_dir.mkdir(parents=True, exist_ok=True)
+            if args.cut_days is not None:
+                days = [cut_days_file(d, args.cut_days, case_dir / "cut") for d in days]
             model = case_dir / "sim-vmc.model.toml"
             if not model.is_file():  # a kept one is reused: both trees diagnose the same model
                 # identified by the baseline: a newer tree reads an older model file, not always the reverse
                 timed_cli(old_tree, ["identify", "--profile", str(PROFILE), *map(str, exps), "-o", str(model)])
             diag_args = ["diagnose", "--profile", str(PROFILE), "--model", str(model), *map(str, exps),
-                         *map(str, days), "--force", "-o"]
+                         *map(str, days), *(a for col in EFFECTS[effect].use_signals for a in ("--use-signal", col)),
+                         "--force", "-o"]
             cpu = {key: float("inf") for key in trees}
             # the trees take turns (baseline, this, baseline, this, ...): this PC's speed drifts over minutes
             # (the same diagnosis measured 40-72 s within a day), and N runs of one then N of the other would
