@@ -182,8 +182,9 @@ def diagnose(model: ThermalModel, recordings: Sequence[Recording], *, factors: S
             if progress:
                 progress("the work before the recordings that start warm, chosen again by the re-identified model")
             now = _one_pass(model, recordings, again, warm, previous=now, **kw)
-            if now.comparison.written.sse < best.comparison.written.sse:
-                best = now
+            if now.comparison.written.sse >= best.comparison.written.sse:
+                break  # a choice that did not predict better is not a step to build the next one on
+            best = now
         histories = best.histories
         stack, findings, results, comparison = best.stack, best.findings, best.results, best.comparison
         adequacy, block, hyps, confused = best.adequacy, best.block, best.hypotheses, best.confused
