@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gateway.errors import RecordingError
-from gateway.model.inputs import Column, DerivedInput, evaluate_inputs, initial_values
+from gateway.model.inputs import Column, DerivedInput, evaluate_inputs, initial_values, start_leads
 from gateway.recording import Recording, number_or_blank
 
 INITIAL_CHOICES = ("first", "reference")
@@ -69,6 +69,9 @@ class Prepared:
     y_sd: np.ndarray | None = None
     #: where ``y`` comes from: "displacement" (the displacement columns) or "probes" (probe_* columns)
     y_source: str = "displacement"
+    #: (inputs, L) deviations over the windows run before the first (a daily-start column's days before it, see
+    #: :func:`gateway.model.inputs.daily_start`; zero for every other input); None: the model starts settled
+    lead: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -152,8 +155,17 @@ def prepare(
                         row[k] = last
 
     du = u - u0[:, None]
+    lead = None
     if inputs:
-        du = np.vstack([du, _derived(rec, inputs, factors, u, u0)])
+        derived, leads, said = _derived(rec, inputs, factors, u, u0)
+        du = np.vstack([du, derived])
+        notes += said
+        if leads:
+            n_lead = max(len(v) for v in leads.values())
+            lead = np.zeros((du.shape[0], n_lead))
+            for k, inp in enumerate(inputs):
+                if inp.name in leads:
+                    lead[len(factors) + k, n_lead - len(leads[inp.name]):] = leads[inp.name]
 
     y = np.full((len(axes), n), np.nan)
     for i, a in enumerate(axes):
@@ -165,7 +177,8 @@ def prepare(
         y, y_sd, source = _probe_points(rec, axes, y)
     y[:, ~rec.present] = np.nan
     return Prepared(name=rec.name, dt_s=rec.period_s, time_s=np.asarray(rec.time_s), du=du,
-                    u0=u0, y=y, present=np.asarray(rec.present), notes=tuple(notes), y_sd=y_sd, y_source=source)
+                    u0=u0, y=y, present=np.asarray(rec.present), notes=tuple(notes), y_sd=y_sd, y_source=source,
+                    lead=lead)
 
 
 def _probe_points(rec: Recording, axes: Sequence[str], y: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
@@ -189,8 +202,12 @@ def _probe_points(rec: Recording, axes: Sequence[str], y: np.ndarray) -> tuple[n
 
 
 def _derived(rec: Recording, inputs: Sequence[DerivedInput], factors: Sequence[str], u: np.ndarray,
-             u0: np.ndarray) -> np.ndarray:
-    """Deviations of the derived inputs (rows in declaration order) from the initial equilibrium."""
+             u0: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray], list[str]]:
+    """Deviations of the derived inputs (rows in declaration order) from the initial equilibrium.
+
+    With the deviations over the windows before the first of each daily-start column input (by input name:
+    :func:`gateway.model.inputs.start_leads`) and what was done there, in words.
+    """
     columns = {}
     for inp in inputs:
         if isinstance(inp, Column):
@@ -210,7 +227,9 @@ def _derived(rec: Recording, inputs: Sequence[DerivedInput], factors: Sequence[s
     initial = {f: float(v) for f, v in zip(factors, u0, strict=True)}
     initial |= {c: float(v[np.isfinite(v)][0]) for c, v in columns.items()}
     time_s = np.asarray(rec.time_s, float)
+    columns, leads, said = start_leads(inputs, time_s, columns, rec.period_s)
     values = evaluate_inputs(inputs, {f: u[j] for j, f in enumerate(factors)}, time_s=time_s, dt_s=rec.period_s,
                              columns=columns, initial=initial)
     start = initial_values(inputs, initial, time0_s=float(time_s[0]))
-    return np.array([values[d.name] - start[d.name] for d in inputs])
+    by_input = {d.name: leads[d.column] - start[d.name] for d in inputs if isinstance(d, Column) and d.column in leads}
+    return np.array([values[d.name] - start[d.name] for d in inputs]), by_input, said

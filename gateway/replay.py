@@ -155,7 +155,7 @@ def estimate(
     skip = len(run) - len(rec)
     prep = prepare(run, factors=model.factors, axes=model.axes, initial=initial, reference=model.reference,
                    gap_policy=gap_policy, inputs=model.inputs)
-    est = model.discretize(rec.period_s).simulate(prep.du)[:, skip:]
+    est = model.discretize(rec.period_s).simulate(prep.du, prep.lead)[:, skip:]
     du = prep.du[:, skip:]
     measured = prep.y[:, skip:].copy()
     time_s = prep.time_s[skip:]
@@ -358,7 +358,7 @@ def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "h
             total += float(np.sum((e - e.mean()) ** 2)) if e.size else 0.0
         return total
 
-    at_rest = miss(dm.simulate(prep.du))
+    at_rest = miss(dm.simulate(prep.du, prep.lead))
     best = (at_rest, None, "")
     bar = WORK_MIN_SHARE * at_rest  # noise and small misses of the model draw some history: one that matters
     # removes a share of the miss
@@ -371,8 +371,8 @@ def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "h
         ever = prepare(rec, factors=model.factors, axes=model.axes, initial="first", reference=model.reference,
                        gap_policy=gap_policy, inputs=model.inputs)
         rest = prep.u0[: len(names)]
-        best = min((at_rest, _held(rec, names, rest, rest, 0), "no work"), (miss(dm.simulate(ever.du)), None, ""),
-                   key=lambda c: c[0])
+        best = min((at_rest, _held(rec, names, rest, rest, 0), "no work"),
+                   (miss(dm.simulate(ever.du, ever.lead)), None, ""), key=lambda c: c[0])
         bar = math.inf  # no default a share must beat
     for said, level in levels.items():
         if not np.any(level):
@@ -382,7 +382,7 @@ def working_history(model: ThermalModel, rec: Recording, *, gap_policy: str = "h
             hist = _held(rec, names, prep.u0[: len(names)], prep.u0[: len(names)] + level, k)
             run = prepare(continued(hist, rec), factors=model.factors, axes=model.axes, initial="reference",
                           reference=model.reference, gap_policy=gap_policy, inputs=model.inputs)
-            score = miss(dm.simulate(run.du)[:, k + 1:])
+            score = miss(dm.simulate(run.du, run.lead)[:, k + 1:])
             if score < best[0]:
                 best = (score, hist, f"{hours:g} h at {said} levels")
     return (best[1], best[2]) if best[1] is not None and best[0] < bar else None

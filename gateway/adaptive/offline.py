@@ -66,7 +66,7 @@ def estimate_with_probes(model: ThermalModel, rec: Recording, probes: Sequence[P
     skip = len(run) - len(rec)
     prep = prepare(run, factors=model.factors, axes=model.axes, initial=initial, reference=model.reference,
                    gap_policy=gap_policy, inputs=model.inputs)
-    contributions = model.discretize(rec.period_s).contributions(prep.du)
+    contributions = model.discretize(rec.period_s).contributions(prep.du, prep.lead)
     t = np.asarray(prep.time_s, dtype=float)
     inside = [p for p in probes if t[0] - rec.period_s < p.time_s <= t[-1] + 1e-9]
     rp = replay(model, contributions, t, inside, window_s=rec.period_s, settings=settings,

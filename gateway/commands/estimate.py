@@ -172,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         for e in ests:
             print(f"{e.recording} (model {model_path}):")
-            for note in e.notes:
+            for note in sorted(e.notes, key=lambda n: not n.startswith(IMPLAUSIBLE)):  # warnings first
                 print(f"  {'warning' if note.startswith(IMPLAUSIBLE) else 'note'}: {note}")
             if not e.metrics:
                 print("  no measured displacement: estimates only")

@@ -19,7 +19,7 @@ import numpy as np
 
 from gateway.errors import GatewayError
 from gateway.model.coverage import check_coverage
-from gateway.model.inputs import Column, DerivedInput, evaluate_inputs, hold_missing, initial_values
+from gateway.model.inputs import Column, DerivedInput, evaluate_inputs, hold_missing, initial_values, start_leads
 from gateway.model.model import PathTF, ThermalModel
 from gateway.model.terms import FirstOrder, Term
 from gateway.prepare import MIN_PROBE_POINTS, Prepared, prepare
@@ -85,6 +85,9 @@ class Stack:
     #: per recording, the windows of work run before its own first window (a start fitted as hours of work, see
     #: :func:`gateway.diagnose.api.start_histories`): no displacement there; times are told from its own start
     lead: tuple[int, ...] = ()
+    #: per model input that starts from days before each recording (a daily-start column, see
+    #: :func:`gateway.model.inputs.daily_start`), its deviations over them, per recording (empty: none)
+    leads: dict[str, tuple[np.ndarray, ...]] = field(default_factory=dict)
     _cache: dict[object, object] = field(default_factory=dict, repr=False)
 
     @property
@@ -144,28 +147,49 @@ class Stack:
         """Deviations of a model input, or of an input of ``chain`` (derived inputs, in order; cached)."""
         if not any(d.name == name for d in chain):
             return self.du[name]
+        return self._chain(chain)[0][name]
+
+    def input_lead(self, name: str, chain: tuple[DerivedInput, ...] = ()) -> tuple[np.ndarray, ...] | None:
+        """Per recording, the deviations of an input over the days run before it (:attr:`leads`); None: none."""
+        if not any(d.name == name for d in chain):
+            return self.leads.get(name)
+        return self._chain(chain)[1].get(name)
+
+    def _chain(self, chain: tuple[DerivedInput, ...]) -> tuple[dict[str, np.ndarray],
+                                                                dict[str, tuple[np.ndarray, ...]]]:
         key = ("inputs", chain)
         if key not in self._cache:
             self._cache[key] = self._derived(chain)
-        return self._cache[key][name]  # type: ignore[index]
+        return self._cache[key]  # type: ignore[return-value]
 
-    def _derived(self, chain: tuple[DerivedInput, ...]) -> dict[str, np.ndarray]:
+    def _derived(self, chain: tuple[DerivedInput, ...]) -> tuple[dict[str, np.ndarray],
+                                                                  dict[str, tuple[np.ndarray, ...]]]:
+        """The chain's deviations (as :func:`gateway.prepare.prepare` computes them) and its daily-start leads."""
         out = {d.name: np.zeros(self.n) for d in chain}
+        leads: dict[str, list[np.ndarray]] = {}
         cols_needed = [d.column for d in chain if isinstance(d, Column)]
         for a, b in self.bounds:
             sig = {f: self.raw[f][a:b] for f in self.factors}
             cols = {c: self.extras[c][a:b] for c in cols_needed}
             initial = {f: float(v[0]) for f, v in sig.items()}
             initial |= {c: float(hold_missing(v)[0]) for c, v in cols.items()}
+            cols, by_column, _ = start_leads(chain, self.time_s[a:b], cols, self.dt_s)
             values = evaluate_inputs(chain, sig, time_s=self.time_s[a:b], dt_s=self.dt_s, columns=cols,
                                      initial=initial)
             start = initial_values(chain, initial, time0_s=float(self.time_s[a]))
             for d in chain:
                 out[d.name][a:b] = values[d.name] - start[d.name]
-        return out
+                if isinstance(d, Column) and d.start == "daily":
+                    leads.setdefault(d.name, []).append(by_column[d.column] - start[d.name]
+                                                        if d.column in by_column else np.zeros(0))
+        return out, {k: tuple(v) for k, v in leads.items() if any(x.size for x in v)}
 
-    def response(self, u: np.ndarray, terms: Sequence[Term], delay_s: float = 0.0) -> np.ndarray:
-        """Response of ``terms`` (with their gains) behind ``delay_s`` to ``u``, each recording from rest."""
+    def response(self, u: np.ndarray, terms: Sequence[Term], delay_s: float = 0.0,
+                 lead: Sequence[np.ndarray] | None = None) -> np.ndarray:
+        """Response of ``terms`` (with their gains) behind ``delay_s`` to ``u``, each recording from rest.
+
+        ``lead``: per recording, ``u`` over the windows before it, run first (:attr:`leads`).
+        """
         out = np.zeros(self.n)
         if not terms:
             return out
@@ -173,8 +197,12 @@ class Stack:
         for gain, sec in path.sections(self.dt_s):
             if gain == 0.0:
                 continue
-            for a, b in self.bounds:
-                out[a:b] += gain * sec.filter(u[a:b])
+            for r, (a, b) in enumerate(self.bounds):
+                before = lead[r] if lead is not None else None
+                if before is not None and before.size:
+                    out[a:b] += gain * sec.filter(np.concatenate([before, u[a:b]]))[before.size:]
+                else:
+                    out[a:b] += gain * sec.filter(u[a:b])
         return out
 
     def column(self, comp: Component, chain: tuple[DerivedInput, ...] = ()) -> np.ndarray:
@@ -183,7 +211,8 @@ class Stack:
         if key not in self._cache:
             total = np.zeros(self.n)
             for p in comp.parts:
-                total += self.response(self.input_du(p.input, chain), p.terms, p.delay_s)
+                total += self.response(self.input_du(p.input, chain), p.terms, p.delay_s,
+                                       self.input_lead(p.input, chain))
             if len(self._cache) > 20000:  # a long search: keep memory bounded
                 self._cache.clear()
             self._cache[key] = total
@@ -303,6 +332,7 @@ def build_stack(model: ThermalModel, recordings: Sequence[Recording], *, gap_pol
     names, srcs, bounds, notes, prints = [], [], [], [], []
     times, present, ys, bases, contribs = [], [], [], [], []
     du: dict[str, list[np.ndarray]] = {k: [] for k in model.input_names}
+    leads: dict[str, list[np.ndarray]] = {k: [] for k in model.input_names}
     raw: dict[str, list[np.ndarray]] = {f: [] for f in model.factors}
     extra_names = sorted({k for r in recordings for k in r.extras})
     extras: dict[str, list[np.ndarray]] = {k: [] for k in extra_names}
@@ -331,11 +361,12 @@ def build_stack(model: ThermalModel, recordings: Sequence[Recording], *, gap_pol
         times.append(p.time_s)
         present.append(p.present)
         ys.append(p.y)
-        c = dm.contributions(p.du)
+        c = dm.contributions(p.du, p.lead)
         contribs.append(c)
         bases.append(c.sum(axis=1))
         for j, k in enumerate(model.input_names):
             du[k].append(p.du[j])
+            leads[k].append(p.lead[j] if p.lead is not None and np.any(p.lead[j]) else np.zeros(0))
         for j, f in enumerate(model.factors):
             raw[f].append(p.du[j] + p.u0[j])
         for k in extra_names:
@@ -350,7 +381,8 @@ def build_stack(model: ThermalModel, recordings: Sequence[Recording], *, gap_pol
                  raw={k: np.concatenate(v) for k, v in raw.items()},
                  extras={k: np.concatenate(v) for k, v in extras.items()}, y=y,
                  base=np.concatenate(bases, axis=1), contributions=np.concatenate(contribs, axis=2),
-                 notes=notes, fingerprints=tuple(prints), y_sd=np.concatenate(sds, axis=1), sampled=tuple(sampled))
+                 notes=notes, fingerprints=tuple(prints), y_sd=np.concatenate(sds, axis=1), sampled=tuple(sampled),
+                 leads={k: tuple(v) for k, v in leads.items() if any(x.size for x in v)})
 
 
 def _measured_note(p: Prepared, rec: Recording, axes: Sequence[str]) -> list[str]:

@@ -198,8 +198,8 @@ def _lag_pairs(lo1: float, hi1: float, lo2: float, hi2: float) -> list[tuple[flo
     return out
 
 
-def _column_settings(ctx: _Ctx, col: str) -> list[Setting]:
-    inp = Column(name=safe_name(col, ctx.taken()), column=col, unit="", note=f"recorded column {col}")
+def _column_settings(ctx: _Ctx, col: str, *, start: str = "settled") -> list[Setting]:
+    inp = Column(name=safe_name(col, ctx.taken()), column=col, unit="", note=f"recorded column {col}", start=start)
     out = []
     # a casting follows the room within hours, a massive bed within a day: longer lags would only fit a
     # drift and extrapolate it
@@ -265,7 +265,9 @@ def _room_recorded(ctx: _Ctx) -> list[Hypothesis]:
         explanation=(f"The workshop air ({col}) heats and cools the whole structure through its surfaces; the "
                      "model has no input for it. It acts through lags (hours for a casting), so the "
                      "displacement follows the room late and smoothed."),
-        settings={a: _column_settings(ctx, col) for a in ctx.axes})
+        # the room cycled before each recording as it does in it: its paths start so, not settled (the days
+        # before it run first, in estimate too: see gateway.model.inputs.daily_start)
+        settings={a: _column_settings(ctx, col, start="daily") for a in ctx.axes})
         for col in _usable_columns(ctx) if ROOM_NAMES.search(col)]
 
 

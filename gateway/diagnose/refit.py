@@ -64,7 +64,7 @@ def path_corrections(stack: Stack, model: ThermalModel) -> list[np.ndarray]:
         if u is None or not np.any(u):
             continue
         for tau in bank_taus(stack, model):
-            cols.append(stack.response(u, lag(tau)))
+            cols.append(stack.response(u, lag(tau), lead=stack.leads.get(name)))
     return cols
 
 

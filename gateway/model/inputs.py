@@ -95,18 +95,34 @@ class Flag:
         return f"1 if {self.of} > {self.above:g} else 0"
 
 
+#: how the paths of a recorded column start (:class:`Column`): "settled" in equilibrium with its first value;
+#: "daily" as if it had cycled before the recording as it cycles in its first day (:func:`daily_start`)
+COLUMN_STARTS = ("settled", "daily")
+
+
 @dataclass(frozen=True, kw_only=True, slots=True)
 class Column:
-    """A recorded column that is not a factor (e.g. ``room_c``)."""
+    """A recorded column that is not a factor (e.g. ``room_c``).
+
+    ``start``: "settled" (its paths start in equilibrium with its first value, as the factors' do) or "daily"
+    (a room thermometer: the days before the recording are taken to have cycled as its first day does; see
+    :func:`daily_start`).
+    """
 
     kind: ClassVar[str] = "column"
     name: str
     column: str
     unit: str = ""
     note: str = ""
+    start: str = "settled"
+
+    def __post_init__(self) -> None:
+        if self.start not in COLUMN_STARTS:
+            raise ValueError(f"input {self.name}: start must be one of {COLUMN_STARTS}. Got {self.start!r}")
 
     def describe(self) -> str:
-        return f"recorded column {self.column}"
+        return f"recorded column {self.column}" + (", cycling daily before the start" if self.start == "daily"
+                                                   else "")
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -245,6 +261,98 @@ def evaluate_inputs(inputs: Sequence[DerivedInput], signals: Signals, *, time_s:
     return out
 
 
+DAY_S = 86400.0
+#: a daily start needs this much of the column: in less than half a day a cycle is not told from a drift
+DAILY_MIN_S = 12 * 3600.0
+#: ... and runs this long before the recording: the lags a room acts through are a day at most in diagnosis's
+#: search (a casting follows the room within hours, a massive bed within a day), and e^-5 of a start settled
+#: before the lead is left at its end
+DAILY_LEAD_S = 5 * DAY_S
+
+
+@dataclass(frozen=True, slots=True)
+class DailyStart:
+    """What :func:`daily_start` found: the column over the lead (values, oldest first) and its leading gaps filled."""
+
+    lead: np.ndarray
+    values: np.ndarray
+    amplitude: float
+    fitted_s: float
+
+
+def daily_start(time_s: np.ndarray, values: np.ndarray, dt_s: float) -> DailyStart | str:
+    """The days before a recording of a column that cycles daily (a room thermometer), as its first day shows.
+
+    The room does not start with the recording: before it, the air cycled over the days as it does in it, and
+    the structure's lags (hours to a day) carry that into the first hours. Taken to start settled at its first
+    value, a room path is off there by as much as the room's daily swing through it (bench/diagnose.py, room
+    recorded: fresh-day z 3.1-5.4 um from a settled start, 0.9-2.2 um from this one, with the same model).
+
+    So an offset, a linear drift and a sine of one day (on the time stamps: the clock need not be set) are fitted
+    to the column's first day of values (all of them if fewer), and the column before its first value is taken as
+    that value plus the sine's change since: over :data:`DAILY_LEAD_S` before the recording (``lead``) and over
+    the recording's own windows before its first value (``values``, gaps within left as they are). The drift is
+    not carried back (the weather before is not known): the mean before the start is the first value's.
+
+    A sentence saying why not instead: less than :data:`DAILY_MIN_S` of values, or a fitted sine larger than the
+    column's whole swing over the fitted span (half a day of drift that a sine extrapolates).
+    """
+    t = np.asarray(time_s, float)
+    v = np.asarray(values, float)
+    ok = np.flatnonzero(np.isfinite(v))
+    if ok.size < 3 or t[ok[-1]] - t[ok[0]] < DAILY_MIN_S:
+        span = (t[ok[-1]] - t[ok[0]]) / 3600.0 if ok.size else 0.0
+        return (f"{span:.3g} h of values, {DAILY_MIN_S / 3600:g} h needed to tell a daily cycle from a drift: "
+                "started settled at its first value")
+    t0 = t[ok[0]]
+    day = ok[t[ok] - t0 <= DAY_S]
+    w = 2.0 * math.pi / DAY_S
+    tt = t[day] - t0
+    A = np.column_stack([np.ones_like(tt), tt / DAY_S, np.sin(w * tt), np.cos(w * tt)])
+    c = np.linalg.lstsq(A, v[day], rcond=None)[0]
+    amplitude = float(math.hypot(c[2], c[3]))
+    swing = float(np.ptp(v[day]))
+    if not amplitude <= swing:
+        return (f"a daily sine of +-{amplitude:.3g} fitted over its first {(tt[-1]) / 3600:.3g} h, larger than its "
+                f"swing there ({swing:.3g}): a drift, not a cycle; started settled at its first value")
+
+    def change(at: np.ndarray) -> np.ndarray:  # the sine's change since the first value
+        x = at - t0
+        return c[2] * np.sin(w * x) + c[3] * (np.cos(w * x) - 1.0)
+
+    n = round(DAILY_LEAD_S / dt_s)
+    lead = v[ok[0]] + change(t[0] - dt_s * np.arange(n, 0, -1))
+    filled = v.copy()
+    filled[: ok[0]] = v[ok[0]] + change(t[: ok[0]])
+    return DailyStart(lead=lead, values=filled, amplitude=amplitude, fitted_s=float(tt[-1]))
+
+
+def start_leads(inputs: Sequence[DerivedInput], time_s: np.ndarray, columns: Mapping[str, np.ndarray],
+                dt_s: float) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], list[str]]:
+    """The daily-start columns' values (leading gaps filled), their leads and what was done, in words.
+
+    Returns (columns, leads, notes): ``columns`` is ``columns`` with each daily-start column's leading gaps
+    filled by :func:`daily_start`; ``leads`` holds, per daily-start column read, its values over the
+    :data:`DAILY_LEAD_S` before the first window (absent where it starts settled, said in ``notes``).
+    """
+    out = dict(columns)
+    leads: dict[str, np.ndarray] = {}
+    notes: list[str] = []
+    for inp in inputs:
+        if not isinstance(inp, Column) or inp.start != "daily" or inp.column in leads or inp.column not in columns:
+            continue
+        got = daily_start(time_s, columns[inp.column], dt_s)
+        if isinstance(got, str):
+            notes.append(f"column {inp.column} (a daily start): {got}")
+            continue
+        out[inp.column] = got.values
+        leads[inp.column] = got.lead
+        notes.append(f"column {inp.column}: its paths start as if it had cycled daily before the recording as in its "
+                     f"first {got.fitted_s / 3600:.3g} h (a sine of +-{got.amplitude:.3g} fitted there, about its "
+                     f"first value; the {DAILY_LEAD_S / DAY_S:g} days before run first)")
+    return out, leads, notes
+
+
 def _lag(x: np.ndarray, tau_s: float, dt_s: float, settled_at: float) -> np.ndarray:
     """First-order lag of ``x``, its state settled at ``settled_at`` before the first window."""
     if tau_s == 0 or x.size == 0:
@@ -338,6 +446,8 @@ def input_to_toml(inp: DerivedInput) -> dict[str, object]:
         d |= {"period_s": float(inp.period_s), "phase": inp.phase}
     else:
         d["column"] = inp.column
+        if inp.start != "settled":
+            d["start"] = inp.start
     d["unit"] = inp.unit
     if inp.note:
         d["note"] = inp.note
@@ -384,8 +494,9 @@ def parse_inputs(root: Table) -> list[DerivedInput]:
                 inp = Periodic(name=name, period_s=period, phase=phase, unit=unit or "1", note=note)
         elif kind == "column":
             col = t.str("column")
-            if col is not None:
-                inp = Column(name=name, column=col, unit=unit, note=note)
+            start = t.str("start", default="settled", choices=COLUMN_STARTS)
+            if col is not None and start is not None:
+                inp = Column(name=name, column=col, unit=unit, note=note, start=start)
         t.done()
         if inp is not None:
             out.append(inp)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import MappingProxyType
@@ -237,27 +237,48 @@ class DiscreteModel:
             self.sections.append(row)
         self.max_delay = max((s.m + 1 for row in self.sections for _, _, s in row), default=1)
 
-    def simulate(self, du: np.ndarray) -> np.ndarray:
-        """Displacements (axes, N) for input deviations ``du`` (inputs, N), from the reference state."""
+    def simulate(self, du: np.ndarray, lead: np.ndarray | None = None) -> np.ndarray:
+        """Displacements (axes, N) for input deviations ``du`` (inputs, N), from the reference state.
+
+        ``lead`` (inputs, L): deviations over the L windows before the first, run first and not returned
+        (:attr:`gateway.prepare.Prepared.lead`: the days before a recording of a column that cycles daily).
+        """
+        du = self._checked(du, lead)
+        y = np.zeros((len(self.model.axes), du.shape[1]))
+        for i, _, part in self._parts(du, lead):
+            y[i] += part
+        return y
+
+    def contributions(self, du: np.ndarray, lead: np.ndarray | None = None) -> np.ndarray:
+        """Per-path displacements, shape (axes, inputs, N): what each input adds to each axis.
+
+        ``lead``: see :meth:`simulate`.
+        """
+        du = self._checked(du, lead)
+        out = np.zeros((len(self.model.axes), len(self.model.input_names), du.shape[1]))
+        for i, j, part in self._parts(du, lead):
+            out[i, j] += part
+        return out
+
+    def _checked(self, du: np.ndarray, lead: np.ndarray | None) -> np.ndarray:
         du = np.asarray(du, dtype=float)
         if du.ndim != 2 or du.shape[0] != len(self.model.input_names):
             raise ValueError(f"du: wrong shape {du.shape}, expected ({len(self.model.input_names)}, N)")
         if not np.all(np.isfinite(du)):
             raise ValueError("du: inputs must be finite (fill gaps by a stated policy first)")
-        y = np.zeros((len(self.model.axes), du.shape[1]))
-        for i, row in enumerate(self.sections):
-            for j, gain, sec in row:
-                y[i] += gain * sec.filter(du[j])
-        return y
+        if lead is not None and lead.shape[1] and (lead.shape[0] != du.shape[0] or not np.all(np.isfinite(lead))):
+            raise ValueError(f"lead: expected {du.shape[0]} finite rows, got shape {lead.shape}")
+        return du
 
-    def contributions(self, du: np.ndarray) -> np.ndarray:
-        """Per-path displacements, shape (axes, inputs, N): what each input adds to each axis."""
-        du = np.asarray(du, dtype=float)
-        out = np.zeros((len(self.model.axes), len(self.model.input_names), du.shape[1]))
+    def _parts(self, du: np.ndarray, lead: np.ndarray | None) -> Iterator[tuple[int, int, np.ndarray]]:
+        """(axis, input, displacement) of every section (inputs checked by :meth:`_checked`)."""
+        n_lead = 0 if lead is None else lead.shape[1]
         for i, row in enumerate(self.sections):
             for j, gain, sec in row:
-                out[i, j] += gain * sec.filter(du[j])
-        return out
+                if n_lead and np.any(lead[j]):
+                    yield i, j, gain * sec.filter(np.concatenate([lead[j], du[j]]))[n_lead:]
+                else:
+                    yield i, j, gain * sec.filter(du[j])
 
     def stepper(self) -> ModelStepper:
         return ModelStepper(self)
