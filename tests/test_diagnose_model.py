@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -226,10 +227,19 @@ def room_days(days: float, *, drift_k_per_h: float = 0.02, amplitude_k: float = 
                      factors={"speed": np.zeros(n)}, displacement={"x": np.zeros(n)}, extras={"room_c": room})
 
 
-def test_a_room_thermometer_s_paths_start_in_the_daily_cycle_the_days_before_left():
+def heated_hall(rec: Recording) -> Recording:
+    """The same days in a hall heated from 6 to 18 h (19 -> 21 C within an hour or two), drifting 0.01 K/h."""
+    t = rec.time_s - rec.time_s[0]
+    h = (t / 3600.0) % 24
+    room = 19.0 + 2.0 / (1 + np.exp(-2 * (h - 6))) - 2.0 / (1 + np.exp(-2 * (h - 18))) + 0.01 * t / 3600.0
+    return replace(rec, extras={"room_c": room})
+
+
+@pytest.mark.parametrize("hall", ["sine", "heated"])
+def test_a_room_thermometer_s_paths_start_in_the_daily_cycle_the_days_before_left(hall):
     # the truth: four days of the cycle from a settled start (the lag forgets it within a day); the last day alone
     # is what a user estimates. Settled at its first reading, x is off by most of the room's swing through the lag
-    whole = room_days(4)
+    whole = room_days(4) if hall == "sine" else heated_hall(room_days(4))
     truth = estimate(room_model("settled"), whole, align="none").estimated[0][-1440:]
     truth = truth - truth[0]
     day = whole.slice(len(whole) - 1440, len(whole))
@@ -242,9 +252,10 @@ def test_a_room_thermometer_s_paths_start_in_the_daily_cycle_the_days_before_lef
         if start == "daily":
             assert any("column room_c: its paths start as if it had cycled daily before the recording" in note
                        for note in est.notes), est.notes
-    # the drift of the days before is not known (the mean before the start is the first reading's): a few %
+    # the drift of the days before is not known (the mean before the start is the first reading's), and a day
+    # is fitted with three harmonics: a few % of the swing
     assert errors["daily"] < 0.08, errors
-    assert errors["settled"] > 0.4, errors
+    assert errors["settled"] > 0.3, errors
 
 
 def test_a_daily_start_needs_half_a_day_and_adds_no_cycle_to_a_room_that_only_drifts():

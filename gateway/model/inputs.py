@@ -268,6 +268,8 @@ DAILY_MIN_S = 12 * 3600.0
 #: search (a casting follows the room within hours, a massive bed within a day), and e^-5 of a start settled
 #: before the lead is left at its end
 DAILY_LEAD_S = 5 * DAY_S
+#: harmonics of the day fitted where the column spans a whole day (a sine alone where it spans less)
+DAILY_HARMONICS = 3
 
 
 @dataclass(frozen=True, slots=True)
@@ -278,6 +280,7 @@ class DailyStart:
     values: np.ndarray
     amplitude: float
     fitted_s: float
+    harmonics: int = 1
 
 
 def daily_start(time_s: np.ndarray, values: np.ndarray, dt_s: float) -> DailyStart | str:
@@ -288,7 +291,8 @@ def daily_start(time_s: np.ndarray, values: np.ndarray, dt_s: float) -> DailySta
     value, a room path is off there by as much as the room's daily swing through it (bench/diagnose.py, room
     recorded: fresh-day z 3.1-5.4 um from a settled start, 0.9-2.2 um from this one, with the same model).
 
-    So an offset, a linear drift and a sine of one day (on the time stamps: the clock need not be set) are fitted
+    So an offset, a linear drift and a cycle of one day (:data:`DAILY_HARMONICS` harmonics over a whole day, a
+    sine over less; on the time stamps: the clock need not be set) are fitted
     to the column's first day of values (all of them if fewer), and the column before its first value is taken as
     that value plus the sine's change since: over :data:`DAILY_LEAD_S` before the recording (``lead``) and over
     the recording's own windows before its first value (``values``, gaps within left as they are). The drift is
@@ -306,25 +310,33 @@ def daily_start(time_s: np.ndarray, values: np.ndarray, dt_s: float) -> DailySta
                 "started settled at its first value")
     t0 = t[ok[0]]
     day = ok[t[ok] - t0 <= DAY_S]
-    w = 2.0 * math.pi / DAY_S
     tt = t[day] - t0
-    A = np.column_stack([np.ones_like(tt), tt / DAY_S, np.sin(w * tt), np.cos(w * tt)])
-    c = np.linalg.lstsq(A, v[day], rcond=None)[0]
-    amplitude = float(math.hypot(c[2], c[3]))
-    swing = float(np.ptp(v[day]))
-    if not amplitude <= swing:
-        return (f"a daily sine of +-{amplitude:.3g} fitted over its first {(tt[-1]) / 3600:.3g} h, larger than its "
-                f"swing there ({swing:.3g}): a drift, not a cycle; started settled at its first value")
+    # a whole day shows the cycle's shape (a hall heated from 6 to 18 h is no sine), less than one its sine only
+    k = np.arange(1, (DAILY_HARMONICS if tt[-1] >= DAY_S - 2.0 * dt_s else 1) + 1)
+    w = 2.0 * math.pi / DAY_S
 
-    def change(at: np.ndarray) -> np.ndarray:  # the sine's change since the first value
-        x = at - t0
-        return c[2] * np.sin(w * x) + c[3] * (np.cos(w * x) - 1.0)
+    def cycle(x: np.ndarray) -> np.ndarray:  # (len(x), 2 harmonics): sin and cos of each
+        return np.column_stack([np.sin(np.outer(x, w * k)), np.cos(np.outer(x, w * k))])
+
+    A = np.column_stack([np.ones_like(tt), tt / DAY_S, cycle(tt)])
+    c = np.linalg.lstsq(A, v[day], rcond=None)[0][2:]
+    one_day = cycle(np.linspace(0.0, DAY_S, 289)) @ c
+    amplitude = float(np.ptp(one_day)) / 2.0
+    swing = float(np.ptp(v[day]))
+    what = "sine" if len(k) == 1 else f"cycle ({len(k)} harmonics)"
+    if not amplitude <= swing:
+        return (f"a daily {what} of +-{amplitude:.3g} fitted over its first {tt[-1] / 3600:.3g} h, larger than its "
+                f"swing there ({swing:.3g}): a drift, not a cycle; started settled at its first value")
+    at0 = cycle(np.zeros(1)) @ c
+
+    def change(at: np.ndarray) -> np.ndarray:  # the cycle's change since the first value
+        return cycle(at - t0) @ c - at0
 
     n = round(DAILY_LEAD_S / dt_s)
     lead = v[ok[0]] + change(t[0] - dt_s * np.arange(n, 0, -1))
     filled = v.copy()
     filled[: ok[0]] = v[ok[0]] + change(t[: ok[0]])
-    return DailyStart(lead=lead, values=filled, amplitude=amplitude, fitted_s=float(tt[-1]))
+    return DailyStart(lead=lead, values=filled, amplitude=amplitude, fitted_s=float(tt[-1]), harmonics=len(k))
 
 
 def start_leads(inputs: Sequence[DerivedInput], time_s: np.ndarray, columns: Mapping[str, np.ndarray],
@@ -347,8 +359,9 @@ def start_leads(inputs: Sequence[DerivedInput], time_s: np.ndarray, columns: Map
             continue
         out[inp.column] = got.values
         leads[inp.column] = got.lead
+        shape = "a sine" if got.harmonics == 1 else f"a cycle of {got.harmonics} harmonics"
         notes.append(f"column {inp.column}: its paths start as if it had cycled daily before the recording as in its "
-                     f"first {got.fitted_s / 3600:.3g} h (a sine of +-{got.amplitude:.3g} fitted there, about its "
+                     f"first {got.fitted_s / 3600:.3g} h ({shape} of +-{got.amplitude:.3g} fitted there, about its "
                      f"first value; the {DAILY_LEAD_S / DAY_S:g} days before run first)")
     return out, leads, notes
 
