@@ -161,6 +161,14 @@ EFFECTS: dict[str, Effect] = {
                                     note="daily 3 K swing, 0.02 K/h drift; room_c on the production days only"),
     "room not recorded": Effect({"room_cycle": ROOM}, ("room", "disturbance", "daily"), truth="room_cycle",
                                 note="daily 3 K swing, 0.02 K/h drift; no thermometer"),
+    # a room that is no sine (the shape the daily cycle and a thermometer's daily start assume): a hall heated
+    # from 9 to 21 h, switching within an hour
+    "room recorded heated": Effect({"room_cycle": {**ROOM, "heated_h": 12.0}}, ("room_recorded",), thermometer=True,
+                                   truth="room_cycle", note="a hall heated 9-21 h, 3 K swing, 0.02 K/h drift; "
+                                   "room_c recorded"),
+    "room not recorded heated": Effect({"room_cycle": {**ROOM, "heated_h": 12.0}}, ("room", "disturbance", "daily"),
+                                       truth="room_cycle", note="a hall heated 9-21 h, 3 K swing, 0.02 K/h drift; "
+                                       "no thermometer"),
     "eddy loss": Effect({"eddy_loss": {"loss_w_at_1000rpm": 15.0}}, ("eddy_loss",), truth="eddy_loss",
                         note="15 W at 1000 rpm"),
     "slow mode": Effect({"slow_path": {"time_constant_h": 24.0, "um_per_k": {"z": 10.0}}}, ("slow_mode",),

@@ -131,6 +131,16 @@ def test_room_cycle_acts_through_the_structure():
     d = cyc.true_um
     np.testing.assert_allclose(d[row(24 * 60)], d[row(48 * 60)], atol=0.05)  # periodic steady state
     assert np.ptp(d[:, Z]) > 5.0  # a daily swing of several um
+    # a heated hall: warm from 9 to 21 h, cold otherwise, the same swing; the machine starts in its cycle too
+    hall = run("[scenario]\nduration_h = 48\n[room]\nthermometer = true\n[sensors]\nnoise_um = 0\n"
+               "[effects.room_cycle]\namplitude_k = 2.0\npeak_at_h = 15\nheated_h = 12\n")
+    hours = hall.time_s / 3600.0 % 24.0
+    warm = (hours > 11.0) & (hours < 19.0)
+    cold = (hours < 7.0) | (hours > 23.0)
+    np.testing.assert_allclose(hall.room_c[warm], 22.0, atol=0.02)
+    np.testing.assert_allclose(hall.room_c[cold], 18.0, atol=0.02)
+    np.testing.assert_allclose(hall.true_um[row(24 * 60)], hall.true_um[row(48 * 60)], atol=0.05)
+    assert np.ptp(hall.true_um[:, Z]) > 5.0
     ramp = run("[scenario]\nduration_h = 72\n[sensors]\nnoise_um = 0\n"
                "[effects.room_cycle]\namplitude_k = 0\ndrift_k_per_h = 0.1\n")
     # warmed uniformly, the tool moves by the sum of the sensitivities per kelvin

@@ -264,7 +264,8 @@ def _room_recorded(ctx: _Ctx) -> list[Hypothesis]:
         key=f"room_recorded:{col}", family="room_recorded", title=f"room temperature (recorded as {col})",
         explanation=(f"The workshop air ({col}) heats and cools the whole structure through its surfaces; the "
                      "model has no input for it. It acts through lags (hours for a casting), so the "
-                     "displacement follows the room late and smoothed."),
+                     "displacement follows the room late and smoothed. The room did not start with a recording: "
+                     "its paths start as if it had cycled before it as in the recording's first day."),
         # the room cycled before each recording as it does in it: its paths start so, not settled (the days
         # before it run first, in estimate too: see gateway.model.inputs.daily_start)
         settings={a: _column_settings(ctx, col, start="daily") for a in ctx.axes})

@@ -11,6 +11,7 @@ minus the displacement of the same run with that one effect switched off.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -31,7 +32,11 @@ class RoomCycle:
     """The workshop's air temperature.
 
     A daily sine plus a linear drift, acting on every node through its conductance to the room (the machine
-    starts in the cycle's periodic steady state).
+    starts in the cycle's periodic steady state). With ``heated_h`` > 0 the cycle is a heated hall's instead:
+    warm for that many hours a day (centred on ``peak_at_h``), cold the rest, switching within about an hour
+    (a rectangle smoothed by a Gaussian of 0.5 h, as a Fourier series: :meth:`harmonics`), with the sine's mean
+    and peak-to-peak swing. A room that is no sine: what a daily start fitted with a sine or a few harmonics
+    meets in a real hall.
     """
 
     amplitude_k: float = field(default=1.5, metadata=_m(min=0.0, max=20.0, help="half the daily peak-to-peak swing"))
@@ -40,6 +45,23 @@ class RoomCycle:
                              metadata=_m(min=0.0, max=1000.0, help="hours after the start of the warmest moment"))
     drift_k_per_h: float = field(default=0.0,
                                  metadata=_m(min=-5.0, max=5.0, help="slow change of the mean (weather, heating)"))
+    heated_h: float = field(default=0.0, metadata=_m(min=0.0, max=23.0, help="hours a day the hall is heated "
+                                                                                "(0: a sine)"))
+
+    def harmonics(self) -> list[tuple[int, float]]:
+        """(k, c_k): the room's deviation is sum_k c_k cos(k w (t - peak)), w = 2 pi / period (mean 0)."""
+        if self.heated_h <= 0:
+            return [(1, self.amplitude_k)]
+        duty = self.heated_h / self.period_h
+        w = 2.0 * math.pi / (self.period_h * 3600.0)
+        out = []
+        for k in range(1, 80):
+            smooth = math.exp(-0.5 * (k * w * 1800.0) ** 2)
+            if smooth < 1e-6:
+                break
+            # a rectangle of +-A (warm for duty of the period): 4 A / (pi k) sin(pi k duty), smoothed
+            out.append((k, 4.0 * self.amplitude_k / (math.pi * k) * math.sin(math.pi * k * duty) * smooth))
+        return out
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -185,11 +185,12 @@ class ThermalModel:
         _, q_rest = self.heat(rest_stats(self.machine))
         T0 = np.linalg.solve(self.net.K, q_rest)
         if (rc := self.effects.room_cycle) is not None and rc.amplitude_k > 0:
-            # periodic steady state of C dT/dt = -K T + g A cos(W (t - t_peak)), taken at t = 0
+            # periodic steady state of C dT/dt = -K T + g sum_k c_k cos(k W (t - t_peak)), taken at t = 0
             w = 2.0 * math.pi / (rc.period_h * 3600.0)
-            H = np.linalg.solve(1j * w * np.diag(self.net.C) + self.net.K,
-                                self.net.room * rc.amplitude_k * np.exp(-1j * w * rc.peak_at_h * 3600.0))
-            T0 = T0 + H.real
+            for k, c in rc.harmonics():
+                H = np.linalg.solve(1j * k * w * np.diag(self.net.C) + self.net.K,
+                                    self.net.room * c * np.exp(-1j * k * w * rc.peak_at_h * 3600.0))
+                T0 = T0 + H.real
         return T0
 
     def stepper(self) -> ThermalStepper:
@@ -275,5 +276,9 @@ def room_deviation(effects: Effects, t0_s: np.ndarray | float, t1_s: np.ndarray 
     w = 2.0 * math.pi / (rc.period_h * 3600.0)
     tp = rc.peak_at_h * 3600.0
     span = np.where(t1 > t0, t1 - t0, 1.0)
-    mean_cos = np.where(t1 > t0, (np.sin(w * (t1 - tp)) - np.sin(w * (t0 - tp))) / (w * span), np.cos(w * (t1 - tp)))
-    return rc.amplitude_k * mean_cos + rc.drift_k_per_h * (t0 + t1) / 2.0 / 3600.0
+    out = rc.drift_k_per_h * (t0 + t1) / 2.0 / 3600.0
+    for k, c in rc.harmonics():
+        kw = k * w
+        out = out + c * np.where(t1 > t0, (np.sin(kw * (t1 - tp)) - np.sin(kw * (t0 - tp))) / (kw * span),
+                                 np.cos(kw * (t1 - tp)))
+    return out
