@@ -282,10 +282,6 @@ def _recorded_signal(ctx: _Ctx) -> list[Hypothesis]:
         for col in _usable_columns(ctx) if not ROOM_NAMES.search(col)]
 
 
-#: the unrecorded room's cycle: a sine of the day, and the day's first three harmonics
-DAILY_HARMONICS = (1, 3)
-
-
 def _room_daily(ctx: _Ctx) -> list[Hypothesis]:
     if ctx.span_s < 0.75 * DAY_S:
         return []  # less than most of a day: a daily cycle cannot be told from a drift
@@ -295,28 +291,15 @@ def _room_daily(ctx: _Ctx) -> list[Hypothesis]:
     # ... recorded in some recordings only, the time of day is known in all of them: both are tried (the bench's
     # "room recorded on days": the thermometer's model predicted the fresh day 2.3-4.9 um pooled RMS, the daily
     # cycle's 0.3-0.9 um, as it had before the thermometer was tried at all)
+    s = Periodic(name="day_sin", period_s=DAY_S, phase="sin", note="time of day (daily room cycle)")
+    c = Periodic(name="day_cos", period_s=DAY_S, phase="cos", note="time of day (daily room cycle)")
     static = (FirstOrder(gain=1.0, tau_s=STATIC_TAU_S),)
-    grid = []
-    # a sine of the day, or the day's first harmonics: a hall heated from 9 to 21 h is no sine, and in the
-    # periodic steady state each harmonic has a gain and a phase of its own
-    for harmonics in DAILY_HARMONICS:
-        chain: list[Periodic] = []
-        comps: list[Component] = []
-        for k in range(1, harmonics + 1):
-            tag = "day" if k == 1 else f"day{k}"
-            for phase in ("sin", "cos"):
-                p = Periodic(name=f"{tag}_{phase}", period_s=DAY_S / k, phase=phase,
-                             note="time of day (daily room cycle)" if k == 1 else
-                             f"time of day (daily room cycle, harmonic {k})")
-                chain.append(p)
-                comps.append(Component((Part(p.name, static),), phase if k == 1 else f"{phase} {k}"))
-        # the room's mean moves with the weather too: a drift of its own in every recording, through the lag
-        # of the structure, which no recording's neighbour predicts (a nuisance: fitted, never written)
-        head: tuple[tuple[str, float | str], ...] = (("period_h", 24.0),) + (
-            (("harmonics", float(harmonics)),) if harmonics > 1 else ())
-        grid.append(Setting(params=(*head, ("drift_tau_s", "none")), chain=tuple(chain), components=tuple(comps)))
-        grid += [Setting(params=(*head, ("drift_tau_s", tau)), chain=tuple(chain), components=tuple(comps),
-                         nuisance=(("ramp", tau),)) for tau in (0.0, 4 * 3600.0, 12 * 3600.0)]
+    comps = (Component((Part(s.name, static),), "sin"), Component((Part(c.name, static),), "cos"))
+    # the room's mean moves with the weather too: a drift of its own in every recording, through the lag of
+    # the structure, which no recording's neighbour predicts (a nuisance: fitted, never written)
+    grid = [Setting(params=(("period_h", 24.0), ("drift_tau_s", "none")), chain=(s, c), components=comps)]
+    grid += [Setting(params=(("period_h", 24.0), ("drift_tau_s", tau)), chain=(s, c), components=comps,
+                     nuisance=(("ramp", tau),)) for tau in (0.0, 4 * 3600.0, 12 * 3600.0)]
     return [Hypothesis(
         key="room_daily", family="room_daily", title="daily room-temperature cycle (not recorded)",
         explanation=("The workshop warms by day and cools by night; without a thermometer the model can "
