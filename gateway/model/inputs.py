@@ -292,13 +292,13 @@ def daily_start(time_s: np.ndarray, values: np.ndarray, dt_s: float) -> DailySta
     recorded: fresh-day z 3.1-5.4 um from a settled start, 0.9-2.2 um from this one, with the same model).
 
     So an offset, a linear drift and a cycle of one day (:data:`DAILY_HARMONICS` harmonics over a whole day, a
-    sine over less; on the time stamps: the clock need not be set) are fitted
-    to the column's first day of values (all of them if fewer), and the column before its first value is taken as
-    that value plus the sine's change since: over :data:`DAILY_LEAD_S` before the recording (``lead``) and over
+    sine over less; on the time stamps: the clock need not be set) are fitted to the column's first day of values
+    (all of them if fewer), and the column before its first value is taken as that value plus the cycle's change
+    since: over :data:`DAILY_LEAD_S` before the recording (``lead``) and over
     the recording's own windows before its first value (``values``, gaps within left as they are). The drift is
     not carried back (the weather before is not known): the mean before the start is the first value's.
 
-    A sentence saying why not instead: less than :data:`DAILY_MIN_S` of values, or a fitted sine larger than the
+    A sentence saying why not instead: less than :data:`DAILY_MIN_S` of values, or a fitted cycle larger than the
     column's whole swing over the fitted span (half a day of drift that a sine extrapolates).
     """
     t = np.asarray(time_s, float)
@@ -311,11 +311,11 @@ def daily_start(time_s: np.ndarray, values: np.ndarray, dt_s: float) -> DailySta
     t0 = t[ok[0]]
     day = ok[t[ok] - t0 <= DAY_S]
     tt = t[day] - t0
-    # a whole day shows the cycle's shape (a hall heated from 6 to 18 h is no sine), less than one its sine only
+    # a whole day shows the cycle's shape (a hall heated from 9 to 21 h is no sine), less than one its sine only
     k = np.arange(1, (DAILY_HARMONICS if tt[-1] >= DAY_S - 2.0 * dt_s else 1) + 1)
     w = 2.0 * math.pi / DAY_S
 
-    def cycle(x: np.ndarray) -> np.ndarray:  # (len(x), 2 harmonics): sin and cos of each
+    def cycle(x: np.ndarray) -> np.ndarray:  # (len(x), 2 per harmonic): the sines, then the cosines
         return np.column_stack([np.sin(np.outer(x, w * k)), np.cos(np.outer(x, w * k))])
 
     A = np.column_stack([np.ones_like(tt), tt / DAY_S, cycle(tt)])
