@@ -198,11 +198,7 @@ class Stack:
             if gain == 0.0:
                 continue
             for r, (a, b) in enumerate(self.bounds):
-                before = lead[r] if lead is not None else None
-                if before is not None and before.size:
-                    out[a:b] += gain * sec.filter(np.concatenate([before, u[a:b]]))[before.size:]
-                else:
-                    out[a:b] += gain * sec.filter(u[a:b])
+                out[a:b] += gain * sec.filter(u[a:b], None if lead is None else lead[r])
         return out
 
     def column(self, comp: Component, chain: tuple[DerivedInput, ...] = ()) -> np.ndarray:

@@ -26,11 +26,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gateway.diagnose.data import Component, Part, Stack, lag, log_grid
-from gateway.model.inputs import Column, DerivedInput, Flag, Periodic, Product, Sum
+from gateway.model.inputs import DAY_S, Column, DerivedInput, Flag, Periodic, Product, Sum
 from gateway.model.model import ThermalModel
 from gateway.model.terms import FirstOrder, SecondOrder
 
-DAY_S = 86400.0
 #: names of recorded columns taken to be the room (ambient) temperature
 ROOM_NAMES = re.compile(r"(room|ambient|amb\b|ambi|umgebung|hall|air|t_?amb)", re.IGNORECASE)
 #: a static path is a lag far shorter than any window: the periodic disturbance's lag is in its phase

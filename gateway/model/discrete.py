@@ -104,11 +104,17 @@ class Section:
     def order(self) -> int:
         return self.Ad.shape[0]
 
-    def filter(self, u: np.ndarray) -> np.ndarray:
-        """Unit-gain response to ``u`` (last axis is time), starting from rest."""
+    def filter(self, u: np.ndarray, before: np.ndarray | None = None) -> np.ndarray:
+        """Unit-gain response to ``u`` (last axis is time), starting from rest.
+
+        ``before`` (1-D): the input over the windows before ``u``, run first from rest and not returned (a
+        daily-start column's days before a recording, :func:`gateway.model.inputs.daily_start`).
+        """
         from scipy.signal import lfilter
 
-        return lfilter(self.num, self.den, u, axis=-1)
+        if before is None or not before.size or not np.any(before):
+            return lfilter(self.num, self.den, u, axis=-1)
+        return lfilter(self.num, self.den, np.concatenate([before, u]))[before.size:]
 
     def final_state(self, u: np.ndarray) -> np.ndarray:
         """State x_N after the input history ``u`` (1-D), from rest: same recursion, vectorised."""

@@ -272,13 +272,9 @@ class DiscreteModel:
 
     def _parts(self, du: np.ndarray, lead: np.ndarray | None) -> Iterator[tuple[int, int, np.ndarray]]:
         """(axis, input, displacement) of every section (inputs checked by :meth:`_checked`)."""
-        n_lead = 0 if lead is None else lead.shape[1]
         for i, row in enumerate(self.sections):
             for j, gain, sec in row:
-                if n_lead and np.any(lead[j]):
-                    yield i, j, gain * sec.filter(np.concatenate([lead[j], du[j]]))[n_lead:]
-                else:
-                    yield i, j, gain * sec.filter(du[j])
+                yield i, j, gain * sec.filter(du[j], None if lead is None else lead[j])
 
     def stepper(self) -> ModelStepper:
         return ModelStepper(self)
