@@ -5,6 +5,7 @@ factors."""
 from __future__ import annotations
 
 import math
+import random
 
 import pytest
 from test_drivers_support import RunoutSource, live_profile
@@ -51,7 +52,8 @@ def test_bursts_average_whole_revolutions_and_cancel_runout(tmp_path):
             truth = sum(machine.values(t)[f"{axis}_um"] for t in ticks) / len(ticks)  # without runout
             plain = [source.values(round(r.end_s - k * 0.002, 9))[f"{axis}_um"] for k in range(1450)]
             plain_errors.append(abs(sum(plain) / len(plain) - truth))
-            assert r.displacement[axis] == pytest.approx(truth, abs=1e-5), axis
+            # a read missed under load (the driver's timeout is wall time) moves it by ~3e-4 um at most
+            assert r.displacement[axis] == pytest.approx(truth, abs=1e-3), axis
         # the plain mean of the 2.9 s keeps a part of the runout (how much depends on its phase)
         assert max(plain_errors) > 0.02
     out = export_recording(store, profile, tmp_path / "burst.csv")
@@ -66,5 +68,32 @@ def test_revolution_average_without_speed_or_at_rest_is_the_plain_mean():
     assert revolution_average(samples, 0.0) == (5.5, 0.0)
     assert revolution_average(samples, 100.0) == (5.5, 0.0)  # 0.1 s at 100 rpm: less than one revolution
     # 0.1 s at 1500 rpm (40 ms a revolution): two whole revolutions, the last 8 samples
-    assert revolution_average(samples, 1500.0) == (6.5, 2.0)
+    assert revolution_average(samples, 1500.0) == (pytest.approx(6.5), 2.0)
     assert math.isnan(revolution_average([], 1000.0)[0])
+
+
+def test_revolution_average_cancels_runout_over_missed_and_late_reads():
+    """A loaded PC skips ticks and reads late (here 0.1 ms rms, 5 % of a tick): the burst is averaged over
+    time, so it still spans whole revolutions (counting samples left a part of a revolution in for every missed read: up to 0.26 um of
+    this 20 um runout with 5 % missed)."""
+    rng = random.Random(7)
+
+    def burst(missed: float, jitter_s: float) -> list[tuple[float, float]]:
+        phase = rng.uniform(0.0, 2 * math.pi)
+        out = []
+        for k in range(1450):  # 2.9 s at 2 ms, 1000 rpm: a revolution every 60 ms, runout of 20 um
+            t = 100.0 + k * 0.002 + rng.gauss(0.0, jitter_s)
+            if k == 1449 or rng.random() >= missed:
+                out.append((t, 3.0 + 20.0 * math.sin(2 * math.pi * t / 0.06 + phase)))
+        return out
+
+    for missed, jitter_s, tolerance in ((0.0, 0.0, 1e-9), (0.0, 1e-4, 1e-3), (0.01, 1e-4, 6e-3),
+                                        (0.05, 1e-4, 0.02)):
+        for _ in range(30):
+            samples = burst(missed, jitter_s)
+            mean, revolutions = revolution_average(samples, 1000.0)
+            assert revolutions == 48.0
+            assert mean == pytest.approx(3.0, abs=tolerance), (missed, jitter_s)
+    one_gap = burst(0.0, 0.0)
+    del one_gap[700]
+    assert revolution_average(one_gap, 1000.0)[0] == pytest.approx(3.0, abs=1e-3)
