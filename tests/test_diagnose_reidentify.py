@@ -375,6 +375,10 @@ def test_the_room_is_named_and_the_rewritten_model_predicts_a_fresh_day(plant_da
     # re-identified beside the room's terms, the speed path's static gain comes back to the plant's
     assert d.extended.path("z", "speed").gain == pytest.approx(PLANT.path("z", "speed").gain, rel=0.25)
     assert [i.name for i in d.extended.inputs] == ["day_sin", "day_cos"]
+    # the room of this plant is a sine: the day's harmonics are tried and not taken over it
+    (harm,) = [t for t in d.result.trials if t.hypothesis.key == "room_daily:3_harmonics"]
+    assert harm.verdict.startswith("passes, but room_daily predicts the held-out blocks significantly better")
+    assert not any(t.rivals for t in d.result.accepted)
 
 
 def test_the_rewritten_model_covers_and_bounds_the_days_it_was_fitted_on(plant_data, diagnosed):

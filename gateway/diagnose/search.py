@@ -328,7 +328,9 @@ def search(stack: Stack, hypotheses: Sequence[Hypothesis], *, block: np.ndarray,
             if e is not None and e.included and e.setting is not None:
                 phys, nuis = setting_columns(stack, e.setting)
                 ax.fix([c[ax.rows] for c in phys + nuis])
-        remaining = [h for h in remaining if h is not chosen.hypothesis]
+        # ... and the same mechanism in another shape nested with it (the room's cycle as a sine or as harmonics)
+        # is not tried again on top of it
+        remaining = [h for h in remaining if h is not chosen.hypothesis and not _variant(h, chosen.hypothesis)]
     terms = {ax.name: _final_terms(stack, ax, offsets, accepted) for ax in axes}
     return SearchResult(trials=trials, accepted=accepted, terms=terms, sse_rounds=sse_rounds,
                         held_of=lambda: {ax.name: _held(stack, ax, offsets, accepted) for ax in axes})
@@ -500,6 +502,11 @@ def sized(e: AxisEvidence, o: Options) -> bool:
             and e.gain >= o.min_relevant_gain)
 
 
+def _variant(h: Hypothesis, of: Hypothesis) -> bool:
+    """Whether ``h`` is ``of`` in another shape: the same family, one nesting the other."""
+    return h.family == of.family and (h.key in of.simpler or of.key in h.simpler)
+
+
 def _judge(t: Trial, o: Options) -> str:
     """Decide which axes join and whether the hypothesis passes; notes say why an axis does not.
 
@@ -593,6 +600,12 @@ def _decide(chosen: Trial, passing: Sequence[Trial], o: Options, *, near: Sequen
             t.verdict = (f"passes, but {chosen.hypothesis.key} predicts the held-out blocks significantly better "
                          f"(p = {p_pair:.2g})")
             continue
+        if _variant(t.hypothesis, chosen.hypothesis) and t.hypothesis.complexity > chosen.hypothesis.complexity:
+            # the same mechanism in a richer shape: not a rival name
+            t.verdict = (f"passes, but does not predict the held-out blocks significantly better than "
+                         f"{chosen.hypothesis.key}, the same mechanism with fewer parameters (p = "
+                         f"{one_sided_p(_pair(chosen, t)):.2g})")
+            continue
         t.verdict = (f"passes, and {chosen.hypothesis.key} does not predict the held-out blocks significantly "
                      f"better (p = {p_pair:.2g}): not told apart; {chosen.hypothesis.key} was taken (fewer "
                      "parameters, passing with the paths held, or the larger held-out gain)")
@@ -600,7 +613,8 @@ def _decide(chosen: Trial, passing: Sequence[Trial], o: Options, *, near: Sequen
             chosen.rivals.append(t)
     # then those short of the correction: the passing rivals come first in the report
     for t in near:
-        if t.hypothesis.generic or t.hypothesis.artefact or chosen.hypothesis.artefact or t is chosen:
+        if (t.hypothesis.generic or t.hypothesis.artefact or chosen.hypothesis.artefact or t is chosen
+                or _variant(t.hypothesis, chosen.hypothesis)):
             continue
         p_pair = one_sided_p(_pair(t, chosen, near=True))
         if p_pair >= o.alpha:
