@@ -284,8 +284,10 @@ def plan(result: IdentifyResult, experiments: Sequence[Prepared], production: Se
         prod_rows[a] = rows
         n = sum(r.shape[0] for r in rows)
         prod_gram[a] = sum(r.T @ r for r in rows) / n
-        peaks[a] = max(max(float(np.abs(dm.simulate(p.du[: len(model.input_names)])[i]).max()) for p in production),
-                       1e-9)
+        # with the days before each recording a daily-start column runs (Prepared.lead), as estimate does
+        n_in = len(model.input_names)
+        peaks[a] = max(max(float(np.abs(dm.simulate(p.du[:n_in], None if p.lead is None else p.lead[:n_in])[i]).max())
+                           for p in production), 1e-9)
         designs[a] = d
 
     def criterion(infos: Mapping[str, np.ndarray]) -> tuple[float, dict[str, float]]:
