@@ -129,9 +129,9 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
     Paths of derived inputs ``model`` already has stay as they are.
 
     ``starts``: re-identifications on nearly the same stack (diagnosis's pass before: the same recordings,
-    other work before the warm ones); an axis with the same terms beside its paths as in one of them (its
-    nuisance may differ) is refined from the fits made there, every structure tried there from where it ended,
-    then chosen and pruned again (:func:`refine_axis`), not searched again.
+    other work before the warm ones); an axis with the same terms and artefacts beside its paths as in one of
+    them is refined from the fits made there, every structure tried there from where it ended, then chosen and
+    pruned again (:func:`refine_axis`), not searched again.
     """
     t0 = time.perf_counter()
     factors = model.factors
@@ -181,11 +181,8 @@ def reidentify(stack: Stack, model: ThermalModel, accepted: Sequence[Trial], *,
             progress(f"re-identifying axis {a}")
         # the extra columns (terms and nuisance, 28-32 of 40-50 on the bench's room cases) factorised once, not
         # in every evaluation: the room-recorded family's diagnosis 41-60 s -> 35-46 s of CPU
-        # the same terms are enough: the nuisance beside them (linear, projected out) may differ in count (a
-        # recording that ran from a fitted history in the pass before and from rest in this one has no free
-        # decays here), which kept every later pass of bench/diagnose.py --cut-days 10 searching afresh
         same = next((r.selections[a] for r in starts if r is not None and a in r.selections
-                     and r.beside.get(a, (None,))[0] == beside[a][0]), None)
+                     and r.beside.get(a) == beside[a]), None)
         if same is not None:
             sel = refine_axis(es, i, same, input_bounds=[bounds] * len(factors), project_extra=True)
         else:
