@@ -307,7 +307,7 @@ def revolution_average(samples: Sequence[tuple[float, float]], speed_rpm: float 
     # ticks when read times jitter)
     gaps = np.diff(ts)
     ticks = np.concatenate(([0.0], np.cumsum(np.maximum(1.0, np.rint(gaps / max(float(np.median(gaps)), 1e-12))))))
-    dt = float(np.polyfit(ticks, ts, 1)[0]) if ticks[-1] > 0 else 0.0
+    dt = float(np.polyfit(ticks, ts, 1)[0])  # every gap counts one tick at least: two samples give a line
     lo, hi = ts[0] - dt / 2, ts[-1] + dt / 2
     duration = hi - lo
     if speed_rpm is None or not math.isfinite(speed_rpm) or abs(speed_rpm) * duration / 60.0 < 1.0:

@@ -74,8 +74,8 @@ def test_revolution_average_without_speed_or_at_rest_is_the_plain_mean():
 
 def test_revolution_average_cancels_runout_over_missed_and_late_reads():
     """A loaded PC skips ticks and reads late (here 0.1 ms rms, 5 % of a tick): the burst is averaged over
-    time, so it still spans whole revolutions (counting samples left a part of a revolution in for every missed read: up to 0.26 um of
-    this 20 um runout with 5 % missed)."""
+    time, so it still spans whole revolutions (counting samples left a part of a revolution in for every
+    missed read: up to 0.22 um of this 20 um runout with 5 % missed, worst of 200 bursts)."""
     rng = random.Random(7)
 
     def burst(missed: float, jitter_s: float) -> list[tuple[float, float]]:
