@@ -19,7 +19,7 @@ import numpy as np
 
 from gateway.errors import GatewayError
 from gateway.model.coverage import check_coverage
-from gateway.model.inputs import Column, DerivedInput, evaluate_inputs, hold_missing, initial_values, start_leads
+from gateway.model.inputs import DAY_S, Column, DerivedInput, evaluate_inputs, hold_missing, initial_values, start_leads
 from gateway.model.model import PathTF, ThermalModel
 from gateway.model.terms import FirstOrder, Term
 from gateway.prepare import MIN_PROBE_POINTS, Prepared, prepare
@@ -119,6 +119,18 @@ class Stack:
     def longest_s(self) -> float:
         """The longest recording's own length (the work run before one, if any, not counted), in seconds."""
         return max((b - self.own_start(r) for r, (_, b) in enumerate(self.bounds)), default=0) * self.dt_s
+
+    def day_covered(self, bins: int = 96) -> float:
+        """The share of the 24 h clock the recordings' own windows cover together (their time stamps' time of day).
+
+        Recordings whose times count from 0 (no clock) all start at midnight here: they cover together what the
+        longest of them does.
+        """
+        hit = np.zeros(bins, dtype=bool)
+        for r, (_, b) in enumerate(self.bounds):
+            t = self.time_s[self.own_start(r):b]
+            hit[np.minimum((np.mod(t, DAY_S) * bins // DAY_S).astype(int), bins - 1)] = True
+        return float(hit.mean())
 
     def start_s(self, r: int) -> float:
         """The time of recording ``r``'s own first window."""

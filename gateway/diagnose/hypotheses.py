@@ -286,8 +286,11 @@ DAILY_HARMONICS = 3
 
 
 def _room_daily(ctx: _Ctx) -> list[Hypothesis]:
-    if ctx.span_s < 0.75 * DAY_S:
-        return []  # less than most of a day: a daily cycle cannot be told from a drift
+    if ctx.span_s < 0.75 * DAY_S and (ctx.stack.longest_s() < DAY_S / 4 or ctx.stack.day_covered() < 0.75):
+        # less than most of a day, in the longest recording and on the clock the recordings cover together: a
+        # daily cycle cannot be told from a drift (days cut at 10 h beside experiments run at other hours show
+        # the whole day between them, each recording's own drift fitted apart)
+        return []
     if any(ROOM_NAMES.search(col) and len(_recorded_in(ctx.stack, ctx.stack.extras[col])) == len(ctx.stack.bounds)
            for col in _usable_columns(ctx)):
         return []  # the room is recorded: its thermometer says more than any guess of its shape
