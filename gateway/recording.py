@@ -130,6 +130,9 @@ class Recording:
     text: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
     meta: Mapping[str, str] = field(default_factory=dict)
     gaps: tuple[Gap, ...] = ()
+    #: the time stamps are the clock's (False: a file without a time column, rows ``period_s`` apart from 0, whose
+    #: time of day is unknown)
+    clock: bool = True
 
     def __post_init__(self) -> None:
         n = len(self.time_s)
@@ -192,7 +195,7 @@ class Recording:
             displacement={k: v[sl].copy() for k, v in self.displacement.items()},
             extras={k: v[sl].copy() for k, v in self.extras.items()},
             text={k: v[sl] for k, v in self.text.items()}, meta=self.meta,
-            gaps=_gaps_from_mask(t, present),
+            gaps=_gaps_from_mask(t, present), clock=self.clock,
         )
 
 
@@ -238,7 +241,8 @@ def continued(history: Recording, rec: Recording) -> Recording:
     return Recording(source=rec.source, period_s=rec.period_s, time_s=t, present=present,
                      factors=joined(history.factors, rec.factors),
                      displacement=joined(history.displacement, rec.displacement),
-                     extras=joined(history.extras, rec.extras), meta=rec.meta, gaps=_gaps_from_mask(t, present))
+                     extras=joined(history.extras, rec.extras), meta=rec.meta, gaps=_gaps_from_mask(t, present),
+                     clock=rec.clock)
 
 
 def _gaps_from_mask(time_s: np.ndarray, present: np.ndarray) -> tuple[Gap, ...]:
@@ -547,7 +551,7 @@ def _read_recording(path: Path, *, factor_columns: Mapping[str, str], displaceme
         factors={f: column(i) for f, i in f_idx.items()},
         displacement={a: column(i) for a, i in d_idx.items()},
         extras=extras, text=texts, meta=MappingProxyType(meta),
-        gaps=_gaps_from_mask(grid_t, present),
+        gaps=_gaps_from_mask(grid_t, present), clock=t_idx is not None,
     )
 
 

@@ -448,11 +448,15 @@ def test_the_daily_room_is_tried_where_the_recordings_cover_the_clock_together(p
     assert stack.longest_s() == pytest.approx(14 * 3600.0)
     assert stack.day_covered() > 0.95
     assert {"room_daily", "room_daily:3_harmonics"} <= {h.key for h in catalogue(stack, base, [])}
-    # the same files with times that count from their own start (no clock): together they cover no more than the
-    # longest, and a daily cycle cannot be told from a drift
-    unclocked = [replace(r, time_s=r.time_s - r.time_s[0] + 60.0) for r in [*exps, *cut]]
-    stack = build_stack(base, unclocked)
+    # the same files with times that count from their own start: together they cover no more than the longest,
+    # and a daily cycle cannot be told from a drift
+    from_zero = [replace(r, time_s=r.time_s - r.time_s[0] + 60.0) for r in [*exps, *cut]]
+    stack = build_stack(base, from_zero)
     assert stack.day_covered() == pytest.approx(14 / 24, abs=0.02)
+    assert not any(h.family == "room_daily" for h in catalogue(stack, base, []))
+    # nor files without a time column (read with a row period): their time of day is unknown
+    stack = build_stack(base, [replace(r, clock=False) for r in [*exps, *cut]])
+    assert stack.day_covered() == 0.0
     assert not any(h.family == "room_daily" for h in catalogue(stack, base, []))
     # nor two experiments run from 9 and 14 h: 9 h to 2 h the next morning is 17 of 24 h
     stack = build_stack(base, exps[:2])

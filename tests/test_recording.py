@@ -47,6 +47,7 @@ def test_iso_time_and_gap_kept_explicit():
     np.testing.assert_array_equal(rec.present, [True, True, False, False, True])
     assert np.isnan(rec.factors["speed"][2:4]).all()
     assert rec.time_s[4] - rec.time_s[0] == 240.0
+    assert rec.clock
     assert len(rec.gaps) == 1
     assert rec.gaps[0].rows == 2
     assert str(rec.gaps[0]) == f"2 missing windows after t={rec.time_s[1]:g} s"
@@ -56,6 +57,8 @@ def test_no_time_column_needs_period():
     rec = read("speed_rpm,i1_sq,z_um\n0,1,0\n10,2,0.5\n", time_column=None, period_s=30)
     np.testing.assert_array_equal(rec.time_s, [0, 30])
     assert rec.period_s == 30
+    # its time of day is unknown (diagnosis tries no daily cycle on it), and so is that of its parts
+    assert not rec.clock and not rec.slice(1, 2).clock
 
 
 @pytest.mark.parametrize(("text", "message"), [

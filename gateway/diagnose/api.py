@@ -25,7 +25,7 @@ from gateway.diagnose.confusable import Confusion, confusions
 from gateway.diagnose.data import Stack, build_stack, identified_on, recording_labels
 from gateway.diagnose.explain import Explanation, explain, held_corrections
 from gateway.diagnose.extend import extend_model
-from gateway.diagnose.hypotheses import FactorInfo, Hypothesis, catalogue, partial_columns
+from gateway.diagnose.hypotheses import DAY_SHOWN, FactorInfo, Hypothesis, catalogue, partial_columns, shows_the_day
 from gateway.diagnose.locate import (
     ChangePoint,
     Correlation,
@@ -584,6 +584,12 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
     if span_h < 36:
         out.append(f"the longest recording is {span_h:.0f} h: within one recording a daily cycle cannot be told apart "
                    "from a slow drift or from the work schedule; record over several days, including an idle one")
+    if not shows_the_day(st) and not any(h.family == "room_recorded" for h in d.hypotheses):
+        cover = (f"the recording covers {24 * st.day_covered():.0f} h of the 24 h clock" if len(st.bounds) == 1 else
+                 f"the recordings cover {24 * st.day_covered():.0f} h of the 24 h clock between them (longest "
+                 f"{span_h:.0f} h)")
+        out.append(f"a daily cycle (the room) was not tried: {cover}; it needs {24 * DAY_SHOWN:.0f} h of it, from "
+                   "recordings stamped with their time of day")
     days = total_h / 24.0
     daily = any(h.family == "room_daily" for h in d.hypotheses)
     if daily and not any(t.hypothesis.family == "room_daily" for t in physics) and days < DAYS_FOR_DAILY:

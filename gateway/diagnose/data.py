@@ -85,6 +85,8 @@ class Stack:
     #: per recording, the windows of work run before its own first window (a start fitted as hours of work, see
     #: :func:`gateway.diagnose.api.start_histories`): no displacement there; times are told from its own start
     lead: tuple[int, ...] = ()
+    #: per recording: its time stamps are the clock's (:attr:`gateway.recording.Recording.clock`; empty: all are)
+    clock: tuple[bool, ...] = ()
     #: per model input that starts from days before each recording (a daily-start column, see
     #: :func:`gateway.model.inputs.daily_start`), its deviations over them, per recording (empty: none)
     leads: dict[str, tuple[np.ndarray, ...]] = field(default_factory=dict)
@@ -123,11 +125,12 @@ class Stack:
     def day_covered(self, bins: int = 96) -> float:
         """The share of the 24 h clock the recordings' own windows cover together (their time stamps' time of day).
 
-        Recordings whose times count from 0 (no clock) all start at midnight here: they cover together what the
-        longest of them does.
+        Recordings without a clock (:attr:`clock`: a file read with a row period) cover nothing of it.
         """
         hit = np.zeros(bins, dtype=bool)
         for r, (_, b) in enumerate(self.bounds):
+            if self.clock and not self.clock[r]:
+                continue
             t = self.time_s[self.own_start(r):b]
             hit[np.minimum((np.mod(t, DAY_S) * bins // DAY_S).astype(int), bins - 1)] = True
         return float(hit.mean())
@@ -390,6 +393,7 @@ def build_stack(model: ThermalModel, recordings: Sequence[Recording], *, gap_pol
                  extras={k: np.concatenate(v) for k, v in extras.items()}, y=y,
                  base=np.concatenate(bases, axis=1), contributions=np.concatenate(contribs, axis=2),
                  notes=notes, fingerprints=tuple(prints), y_sd=np.concatenate(sds, axis=1), sampled=tuple(sampled),
+                 clock=tuple(r.clock for r in recordings),
                  leads={k: tuple(v) for k, v in leads.items() if any(x.size for x in v)})
 
 
