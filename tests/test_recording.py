@@ -58,7 +58,8 @@ def test_no_time_column_needs_period():
     np.testing.assert_array_equal(rec.time_s, [0, 30])
     assert rec.period_s == 30
     # its time of day is unknown (diagnosis tries no daily cycle on it), and so is that of its parts
-    assert not rec.clock and not rec.slice(1, 2).clock
+    assert not rec.clock
+    assert not rec.slice(1, 2).clock
 
 
 @pytest.mark.parametrize(("text", "message"), [
