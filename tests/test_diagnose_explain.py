@@ -18,6 +18,7 @@ import test_diagnose_reidentify as plant
 
 from gateway.diagnose import diagnose
 from gateway.diagnose import search as search_module
+from gateway.diagnose.compare import ALONE, WITH_TERMS, Candidate, choose
 from gateway.diagnose.explain import explain, held_corrections
 from gateway.diagnose.hypotheses import Hypothesis, Setting
 from gateway.diagnose.refit import path_corrections
@@ -356,3 +357,43 @@ def test_the_residual_figure_shows_the_identified_models_residual_when_it_is_the
     monkeypatch.setattr(Figure, "savefig", record)
     assert "residual.png" in write_figures(d, tmp_path)
     assert lines["residual.png"] == [["identified (held out)"]]
+
+
+def _scored(key: str, block_sse) -> Candidate:
+    return Candidate(key=key, title=key, model=None, prediction={}, block_sse=np.asarray(block_sse, float), metrics={})
+
+
+def test_the_paths_re_identified_alone_are_written_over_terms_that_did_not_pass_and_it_says_so():
+    # held-out SSE over 12 blocks: the terms beside the re-identified paths do not beat the identified model
+    # consistently, the paths re-identified alone do (a room thermometer's model on days cut at 10 h, 5 Dec:
+    # its verdict said "significantly better (p = 0.47)")
+    rng = np.random.default_rng(3)
+    ident = 10.0 + rng.random(12)
+    with_terms = ident * np.where(np.arange(12) % 2, 0.5, 1.6)  # better in half the blocks, worse in the others
+    alone = 0.4 * ident
+    cands, chosen = choose({"identified": _scored("identified", ident),
+                            "reidentified": _scored("reidentified", with_terms),
+                            ALONE: _scored(ALONE, alone)}, Options())
+    assert chosen == "reidentified"
+    assert np.allclose(cands["reidentified"].block_sse, alone)
+    terms = cands[WITH_TERMS]
+    assert not terms.passes
+    assert terms.verdict.startswith("not consistently better over the blocks")
+    assert terms.verdict.endswith("; the model re-identified without them passes: not written"), terms.verdict
+    assert "significantly" not in terms.verdict
+    assert cands["reidentified"].verdict.endswith("; written")
+    # where both pass and the paths alone are significantly better, that is what it says
+    cands, chosen = choose({"identified": _scored("identified", ident),
+                            "reidentified": _scored("reidentified", 0.8 * ident),
+                            ALONE: _scored(ALONE, 0.3 * ident)}, Options())
+    assert chosen == "reidentified"
+    assert "; the model re-identified without them predicts the held-out blocks significantly better (p = " in \
+        cands[WITH_TERMS].verdict
+    # and where the terms pass and the paths alone are not significantly better, the terms are written
+    cands, chosen = choose({"identified": _scored("identified", ident),
+                            "reidentified": _scored("reidentified", 0.5 * ident),
+                            ALONE: _scored(ALONE, 0.5 * ident * np.where(np.arange(12) % 2, 0.9, 1.05))}, Options())
+    assert chosen == "reidentified"
+    assert np.allclose(cands["reidentified"].block_sse, 0.5 * ident)
+    assert ALONE in cands
+    assert "not significantly over the blocks" in cands[ALONE].verdict

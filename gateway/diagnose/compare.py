@@ -126,6 +126,18 @@ def compare(stack: Stack, model: ThermalModel, block: np.ndarray, accepted: Sequ
     base = cands["identified"]
     for c in cands.values():
         _figures(stack, base, c)
+    cands, chosen = choose(cands, options)
+    return Comparison(candidates=cands, chosen=chosen, scheme=scheme, folds=folds, score=score, alpha=options.alpha)
+
+
+def choose(cands: dict[str, Candidate], options: Options) -> tuple[dict[str, Candidate], str]:
+    """Judge every candidate against ``cands["identified"]`` and choose the one written: (candidates, its key).
+
+    The fewest changes first (:data:`ORDER`). The candidates come back keyed as the report takes them: where the
+    paths re-identified alone are written, they are ``"reidentified"`` and the model with terms ``WITH_TERMS``.
+    """
+    base = cands["identified"]
+    for c in cands.values():
         _judge(base, c, options)
     chosen = "identified"
     passing = [c for c in cands.values() if c.passes and c is not base]
@@ -138,22 +150,25 @@ def compare(stack: Stack, model: ThermalModel, block: np.ndarray, accepted: Sequ
             if c.sse < best.sse and one_sided_p(_informative(best.block_sse, c.block_sse)) < options.alpha:
                 best = c
         chosen = best.key
-    if alone is not None:
+    if ALONE in cands:
         with_c, alone_c = cands["reidentified"], cands[ALONE]
         p = one_sided_p(_informative(with_c.block_sse, alone_c.block_sse))  # without the terms better than with
         if chosen == "reidentified" and alone_c.sse < with_c.sse:  # the table shows both: say why not this one
             alone_c.verdict += (f"; lower held-out error than the model with the terms, but not significantly over "
                                 f"the blocks (p = {p:.2g}, {options.alpha:g} needed): not written")
         if chosen == ALONE:  # the written re-identification is the one without terms: "reidentified" downstream
-            with_c.verdict += (f"; the model re-identified without them predicts the held-out blocks significantly "
-                               f"better (p = {p:.2g}): not written")
+            if with_c.passes:
+                with_c.verdict += (f"; the model re-identified without them predicts the held-out blocks "
+                                   f"significantly better (p = {p:.2g}): not written")
+            else:  # it did not pass at all: the one without them did
+                with_c.verdict += "; the model re-identified without them passes: not written"
             chosen = "reidentified"
             with_c.key, alone_c.key = WITH_TERMS, "reidentified"
             cands = {c.key: c for c in cands.values()}
     for c in cands.values():
         if c.key == chosen and c is not base:
             c.verdict += "; written"
-    return Comparison(candidates=cands, chosen=chosen, scheme=scheme, folds=folds, score=score, alpha=options.alpha)
+    return cands, chosen
 
 
 def _candidate(stack: Stack, block: np.ndarray, folds: np.ndarray, score: np.ndarray, *, key: str, title: str,
