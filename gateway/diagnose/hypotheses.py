@@ -176,10 +176,6 @@ class _Ctx:
     def dt(self) -> float:
         return self.stack.dt_s
 
-    @property
-    def span_s(self) -> float:
-        return max(b - a for a, b in self.stack.bounds) * self.dt
-
     def base_terms(self, axis: str, factor: str) -> tuple:
         return self.model.path(axis, factor).terms
 
