@@ -585,9 +585,9 @@ def conclusions(d: Diagnosis, block: np.ndarray) -> list[str]:
         out.append(f"the longest recording is {span_h:.0f} h: within one recording a daily cycle cannot be told apart "
                    "from a slow drift or from the work schedule; record over several days, including an idle one")
     if not shows_the_day(st) and not any(h.family == "room_recorded" for h in d.hypotheses):
-        cover = (f"the recording covers {24 * st.day_covered():.0f} h of the 24 h clock" if len(st.bounds) == 1 else
-                 f"the recordings cover {24 * st.day_covered():.0f} h of the 24 h clock between them (longest "
-                 f"{span_h:.0f} h)")
+        hours = 24 * st.day_covered()
+        cover = (f"the recording covers {hours:.0f} h of the 24 h clock" if len(st.bounds) == 1 else
+                 f"the recordings cover {hours:.0f} h of the 24 h clock between them (longest {span_h:.0f} h)")
         out.append(f"a daily cycle (the room) was not tried: {cover}; it needs {24 * DAY_SHOWN:.0f} h of it, from "
                    "recordings stamped with their time of day")
     days = total_h / 24.0

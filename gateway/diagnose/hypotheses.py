@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gateway.diagnose.data import Component, Part, Stack, lag, log_grid
-from gateway.model.inputs import DAY_S, Column, DerivedInput, Flag, Periodic, Product, Sum
+from gateway.model.inputs import DAILY_HARMONICS, DAY_S, Column, DerivedInput, Flag, Periodic, Product, Sum
 from gateway.model.model import ThermalModel
 from gateway.model.terms import FirstOrder, SecondOrder
 
@@ -277,10 +277,6 @@ def _recorded_signal(ctx: _Ctx) -> list[Hypothesis]:
         for col in _usable_columns(ctx) if not ROOM_NAMES.search(col)]
 
 
-#: the harmonics of the day an unrecorded room's cycle is also tried with (a sine is one)
-DAILY_HARMONICS = 3
-
-
 #: the share of the day a daily cycle is tried on: in one recording, or on the clock the recordings cover together
 DAY_SHOWN = 0.75
 
@@ -339,7 +335,7 @@ def _room_daily(ctx: _Ctx) -> list[Hypothesis]:
     # own (in the periodic steady state a lag shifts and scales each). Nested: taken over the sine only where it
     # predicts the held-out blocks significantly better (a sine hall fitted with three harmonics wrote six
     # inputs and gained nothing on the fresh day)
-    harmonics = grid(DAILY_HARMONICS)
+    harmonics = grid(DAILY_HARMONICS)  # as many as a recorded thermometer's daily start fits
     return [
         Hypothesis(key="room_daily", family="room_daily", title="daily room-temperature cycle (not recorded)",
                    explanation=explained, settings={a: sine for a in ctx.axes}),

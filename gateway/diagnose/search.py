@@ -390,11 +390,12 @@ def _held_check(stack: Stack, passing: Sequence[Trial], named: Sequence[Hypothes
     held0 = {a: e.fit.without for t in trials for a, e in t.evidence.items()}
     axes = [a for a in free0 if a in held0]
 
-    def held_sse(t: Trial, on: set[str]) -> np.ndarray:  # held paths with t on ``on``, pooled over the axes
+    def pooled(t: Trial, on: set[str], without: Mapping[str, np.ndarray]) -> np.ndarray:
+        """t's held-out SSE on the axes ``on``, ``without``'s on the others, pooled over the axes."""
         out = np.zeros_like(free0[axes[0]])
         for a in axes:
             e = t.evidence.get(a)
-            out = out + (e.fit.held if e is not None and a in on and e.setting is not None else held0[a])
+            out = out + (e.fit.held if e is not None and a in on and e.setting is not None else without[a])
         return out
 
     free = sum((free0[a] for a in axes), np.zeros_like(free0[axes[0]])) if axes else np.zeros(0)
@@ -409,21 +410,20 @@ def _held_check(stack: Stack, passing: Sequence[Trial], named: Sequence[Hypothes
             refused[id(t)] = (f"with the paths held at the identified time constants it does not pass "
                               f"({mine.verdict}): a change of a path's structure the identified paths do not need")
             continue
-        with_t = held_sse(mine, set(t.axes))
+        with_t = pooled(mine, set(t.axes), held0)
         if not one_sided_p(with_t - free) < o.alpha:
             continue  # with the paths held it accounts for what the free paths did
         rivals = [r for r in trials if r is not mine and r.verdict == "passes" and not r.hypothesis.generic]
         if not rivals:
             continue
-        with_r = [held_sse(r, set(r.axes)) for r in rivals]
+        with_r = [pooled(r, set(r.axes), held0) for r in rivals]
         ps = holm([one_sided_p(with_t - w) for w in with_r])
         # the free paths with t: what t does beside them. A rival that stands for the data only as a test too
         # noisy to call it worse is no account of them (bench room not recorded heated v3: the room's harmonics
         # took 86-97 % of the free paths' held-out error; eddy loss with the paths held was 65 % above the free
         # paths alone, not significantly, and 20x the free paths with the room. The 24 h slow mode that eddy
         # loss stands in for, tests/test_diagnose_explain.py: 1.02x)
-        t_free = sum((t.evidence[a].fit.held if a in t.evidence and t.evidence[a].included else free0[a]
-                      for a in axes), np.zeros_like(free))
+        t_free = pooled(t, set(t.axes), free0)
         for k in np.argsort(ps):
             if (ps[k] < o.alpha and not one_sided_p(with_r[k] - free) < o.alpha
                     and with_r[k].sum() <= HELD_RIVAL_FACTOR * t_free.sum()):
